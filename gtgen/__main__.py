@@ -1,0 +1,3 @@
+from gtgen.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""Reading robot logs: bag flavours, message decoding, poses, and the extract stage."""

@@ -1,0 +1,664 @@
+"""``gtgen extract``: bags -> a time-indexed per-drive store.
+
+Two streaming passes. The first reads the small topics (odometry, TF, GNSS, camera
+info) whole and only the header stamps of the large ones (maps, voxel map, images);
+it fixes the sample times and which large messages to keep. The second decodes just
+those and writes them into the store by index. Memory stays flat in drive length.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import logging
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen import reasons
+from gtgen.bag import store as st
+from gtgen.bag.gridmap import GridMapData, decode_gridmap
+from gtgen.bag.poses import PoseTrack
+from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
+from gtgen.config import CAMERAS, RANGES, GtgenConfig
+from gtgen.errors import BagError, DecodeError, PoseError, TopicError
+from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
+from gtgen.progress import track
+
+log = logging.getLogger(__name__)
+
+GRIDMAP = "grid_map_msgs/msg/GridMap"
+TYPES = {
+    "odometry": ("nav_msgs/msg/Odometry",),
+    "gnss": ("sensor_msgs/msg/NavSatFix",),
+    "voxel_map": ("sensor_msgs/msg/PointCloud2",),
+    "image": ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
+    "info": ("sensor_msgs/msg/CameraInfo",),
+    "tf": ("tf2_msgs/msg/TFMessage",),
+    "map": (GRIDMAP,),
+}
+
+
+@dataclass
+class TopicStats:
+    """Per-topic report line."""
+
+    topic: str
+    role: str
+    count: int = 0
+    decode_failures: int = 0
+    first_error: str = ""
+    stamps: list[int] = field(default_factory=list)
+    record_skew_max_s: float = 0.0
+
+    def summary(self) -> dict:
+        t = np.sort(np.asarray(self.stamps, dtype=np.int64))
+        span = (t[-1] - t[0]) * 1e-9 if len(t) > 1 else 0.0
+        gaps = np.diff(t) * 1e-9 if len(t) > 1 else np.zeros(0)
+        return {
+            "topic": self.topic,
+            "role": self.role,
+            "count": self.count,
+            "rate_hz": round((len(t) - 1) / span, 3) if span > 0 else 0.0,
+            "max_gap_s": round(float(gaps.max()), 3) if len(gaps) else 0.0,
+            "decode_failures": self.decode_failures,
+            "first_error": self.first_error,
+            "record_minus_header_max_s": round(self.record_skew_max_s, 3),
+        }
+
+
+@dataclass
+class ExtractResult:
+    """What an extract did: the store, per-topic stats, sample counts by reason."""
+
+    store: Path
+    topics: list[dict]
+    n_candidates: int
+    n_samples: int
+    rejected: dict[str, int]
+    maps_kept: dict[str, int]
+    skew_s: dict[str, float]
+    warnings: list[str]
+
+
+# -- role resolution ------------------------------------------------------------------
+def _require(topics: dict[str, TopicInfo], role: str, topic: str, kind: str) -> None:
+    info = topics.get(topic)
+    types = TYPES[kind]
+    if info is None:
+        cands = sorted(t for t, i in topics.items() if i.msgtype in types)
+        raise TopicError(f"role '{role}': topic '{topic}' not in the bags; {types[0].split('/')[-1]} topics found: {cands}")
+    if info.msgtype not in types:
+        raise TopicError(f"role '{role}': topic '{topic}' has type {info.msgtype}; expected {' or '.join(types)}")
+
+
+def _roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, str]:
+    """Return topic -> role for every role present, raising for missing required roles."""
+    tp = cfg.topics
+    roles: dict[str, str] = {}
+    for r in RANGES:
+        _require(topics, f"map.{r}", tp.map_topic(r), "map")
+        roles[tp.map_topic(r)] = f"map.{r}"
+    _require(topics, "voxel_map", tp.voxel_map, "voxel_map")
+    roles[tp.voxel_map] = "voxel_map"
+    for c in CAMERAS:
+        _require(topics, f"camera.{c}", tp.cameras[c].image, "image")
+        _require(topics, f"camera_info.{c}", tp.cameras[c].info, "info")
+        roles[tp.cameras[c].image] = f"camera.{c}"
+        roles[tp.cameras[c].info] = f"camera_info.{c}"
+    if tp.odometry in topics:
+        _require(topics, "odometry", tp.odometry, "odometry")
+        roles[tp.odometry] = "odometry"
+    elif tp.tf in topics:
+        roles[tp.tf] = "tf"
+    else:
+        _require(topics, "odometry", tp.odometry, "odometry")
+    if tp.tf_static in topics:
+        roles[tp.tf_static] = "tf_static"
+    else:
+        raise TopicError(f"role 'tf_static': topic '{tp.tf_static}' not in the bags; camera extrinsics come from it")
+    if tp.gnss in topics:
+        _require(topics, "gnss", tp.gnss, "gnss")
+        roles[tp.gnss] = "gnss"
+    return roles
+
+
+# -- pass 1 -----------------------------------------------------------------------------
+@dataclass
+class _Scan:
+    stats: dict[str, TopicStats]
+    odom: list[tuple[int, NDArray, NDArray]] = field(default_factory=list)
+    tf_dyn: list[tuple[int, NDArray, NDArray]] = field(default_factory=list)
+    static: dict[tuple[str, str], NDArray] = field(default_factory=dict)
+    gnss: list[tuple] = field(default_factory=list)
+    info: dict[str, object] = field(default_factory=dict)
+    frames: dict[str, str] = field(default_factory=dict)
+    stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
+    map_meta: dict[str, list[tuple[int, bool]]] = field(default_factory=lambda: defaultdict(list))
+
+
+def _tf_matrix(tr: object) -> NDArray:
+    t, q = tr.translation, tr.rotation  # type: ignore[attr-defined]
+    return make_transform(quat_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([t.x, t.y, t.z]))
+
+
+def _scan(bags: BagSet, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
+    tp = cfg.topics
+    scan = _Scan(stats={t: TopicStats(t, r) for t, r in roles.items()})
+    layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
+    total = sum(bags.topics()[t].count for t in roles)
+    for topic, _, t_rec, msg, err in track(bags.messages(list(roles)), "extract: scanning", total=total):
+        s = scan.stats[topic]
+        role = roles[topic]
+        s.count += 1
+        if msg is None:
+            s.decode_failures += 1
+            s.first_error = s.first_error or err or ""
+            if role.startswith("map."):
+                scan.map_meta[role].append((-1, False))
+            elif role.startswith("camera.") or role == "voxel_map":
+                scan.stamps[role].append(-1)
+            continue
+        if role == "tf_static":
+            for tr in msg.transforms:
+                scan.static[(tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))] = _tf_matrix(tr.transform)
+            continue
+        if role == "tf":
+            for tr in msg.transforms:
+                if tr.header.frame_id.lstrip("/") == tp.odom_frame and tr.child_frame_id.lstrip("/") == tp.base_frame:
+                    T = _tf_matrix(tr.transform)
+                    scan.tf_dyn.append((stamp_ns(tr.header), T[:3, 3], msg_quat(tr.transform.rotation)))
+            continue
+        hdr = msg.info.header if role.startswith("map.") and not hasattr(msg, "header") else msg.header
+        t = stamp_ns(hdr)
+        s.stamps.append(t)
+        s.record_skew_max_s = max(s.record_skew_max_s, abs(t_rec - t) * 1e-9)
+        if role == "odometry":
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            scan.odom.append((t, np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])))
+        elif role == "gnss":
+            cov = np.asarray(msg.position_covariance, dtype=np.float64)
+            var = cov[[0, 4, 8]] if msg.position_covariance_type > 0 and cov.size == 9 else np.full(3, np.nan)
+            scan.gnss.append((t, msg.latitude, msg.longitude, msg.altitude, var, msg.status.status))
+        elif role.startswith("camera_info."):
+            scan.info.setdefault(role.split(".")[1], msg)
+        elif role.startswith("camera."):
+            scan.stamps[role].append(t)
+            scan.frames.setdefault(role, hdr.frame_id.lstrip("/"))
+        elif role == "voxel_map":
+            scan.stamps[role].append(t)
+        elif role.startswith("map."):
+            names = list(msg.layers)
+            ok = all(n in names for n in layer_names)
+            if not ok:
+                s.decode_failures += 1
+                s.first_error = s.first_error or f"layers {names}; expected {layer_names} (topics.layers)"
+            else:
+                vals = [np.asarray(msg.data[names.index(tp.layers.confidence)].data)]
+                ok = bool(np.any(np.isfinite(vals[0]) & (vals[0] > 0)))
+                if not ok:
+                    s.first_error = s.first_error or "all-NaN or zero-confidence map"
+            scan.map_meta[role].append((t, ok))
+    return scan
+
+
+def msg_quat(q: object) -> NDArray:
+    return np.array([q.x, q.y, q.z, q.w])  # type: ignore[attr-defined]
+
+
+# -- selection ---------------------------------------------------------------------------
+def _nearest(stamps: NDArray, t: NDArray) -> tuple[NDArray, NDArray]:
+    """Return (index, |skew| ns) of the stamp nearest each t; stamps sorted; -1 stamps ignored."""
+    if len(stamps) == 0:
+        return np.full(len(t), -1), np.full(len(t), np.iinfo(np.int64).max)
+    i = np.clip(np.searchsorted(stamps, t), 1, len(stamps) - 1) if len(stamps) > 1 else np.zeros(len(t), np.int64)
+    lo = np.maximum(i - 1, 0)
+    d_lo = np.abs(t - stamps[lo])
+    d_hi = np.abs(stamps[i] - t)
+    best = np.where(d_lo <= d_hi, lo, i)
+    return best, np.minimum(d_lo, d_hi)
+
+
+def _sorted_valid(stamps: list[int]) -> tuple[NDArray, NDArray]:
+    """Return (sorted valid stamps, their ordinal in the message stream)."""
+    a = np.asarray(stamps, dtype=np.int64)
+    ords = np.nonzero(a >= 0)[0]
+    order = np.argsort(a[ords], kind="stable")
+    return a[ords][order], ords[order]
+
+
+@dataclass
+class _Plan:
+    t: NDArray  # (S,)
+    cand_t: NDArray
+    cand_reason: NDArray
+    image_ord: NDArray  # (S, 4) ordinal of the image message per camera
+    image_t: NDArray
+    voxel_ord: NDArray
+    voxel_t: NDArray
+    map_ord: dict[str, NDArray]  # kept map ordinals per range, sorted by stamp
+    map_t: dict[str, NDArray]
+    sample_map: dict[str, NDArray]  # (S,) index into kept maps
+
+
+def _select(cfg: GtgenConfig, track_: PoseTrack, scan: _Scan) -> _Plan:
+    ex = cfg.extract
+    dist = track_.distance()
+    marks = np.arange(0.0, dist[-1] + 1e-9, ex.stride_m) if len(dist) else np.zeros(0)
+    # candidate: the time travel reaches each mark (interpolated in the pose stream)
+    cand = np.interp(marks, dist, track_.t_ns.astype(np.float64)).astype(np.int64) if len(marks) else np.zeros(0, np.int64)
+    cand = np.unique(cand)
+    reason = np.zeros(len(cand), np.uint8)
+    # snap to the reference (front) camera so that images are never interpolated
+    front_t, front_ord = _sorted_valid(scan.stamps["camera.front"])
+    fi, _ = _nearest(front_t, cand)
+    t = np.where(fi >= 0, front_t[np.maximum(fi, 0)], cand) if len(front_t) else cand
+    t, first = np.unique(t, return_index=True)
+    cand, reason = cand[first], reason[first]
+    ok_pose = track_.covered(t)
+    reason[~ok_pose] = reasons.NO_POSE
+    img_ord = np.full((len(t), 4), -1, np.int64)
+    img_t = np.zeros((len(t), 4), np.int64)
+    for c_i, c in enumerate(CAMERAS):
+        s, o = _sorted_valid(scan.stamps[f"camera.{c}"])
+        i, d = _nearest(s, t)
+        ok = (i >= 0) & (d <= int(ex.image_skew_s * 1e9))
+        img_ord[:, c_i] = np.where(ok, o[np.maximum(i, 0)] if len(o) else -1, -1)
+        img_t[:, c_i] = np.where(ok, s[np.maximum(i, 0)] if len(s) else 0, 0)
+        reason[(reason == 0) & ~ok] = reasons.NO_IMAGE
+    vs, vo = _sorted_valid(scan.stamps["voxel_map"])
+    vi, vd = _nearest(vs, t)
+    vok = (vi >= 0) & (vd <= int(ex.voxel_skew_s * 1e9))
+    reason[(reason == 0) & ~vok] = reasons.NO_VOXEL
+    map_near: dict[str, tuple[NDArray, NDArray, NDArray]] = {}
+    for r, code in (("micro", reasons.NO_MAP_MICRO), ("short", reasons.NO_MAP_SHORT)):
+        meta = scan.map_meta[f"map.{r}"]
+        stamps = [m[0] if m[1] else -1 for m in meta]
+        ms, mo = _sorted_valid(stamps)
+        mi, md = _nearest(ms, t)
+        mok = (mi >= 0) & (md <= int(ex.map_skew_s * 1e9))
+        reason[(reason == 0) & ~mok] = code
+        map_near[r] = (ms, mo, mi)
+    keep = reason == 0
+    t_k = t[keep]
+    map_ord: dict[str, NDArray] = {}
+    map_t: dict[str, NDArray] = {}
+    sample_map: dict[str, NDArray] = {}
+    period = int(1e9 / ex.map_rate_hz)
+    for r, (ms, mo, mi) in map_near.items():
+        chosen = set()
+        last = None
+        for k in range(len(ms)):  # greedy thinning over message stamps (one pass, small)
+            if last is None or ms[k] - last >= period - 1_000_000:
+                chosen.add(k)
+                last = ms[k]
+        chosen.update(mi[keep].tolist())
+        ks = np.array(sorted(chosen), dtype=np.int64)
+        map_ord[r] = mo[ks] if len(ks) else np.zeros(0, np.int64)
+        map_t[r] = ms[ks] if len(ks) else np.zeros(0, np.int64)
+        sample_map[r] = np.searchsorted(ks, mi[keep]) if len(ks) else np.zeros(0, np.int64)
+    return _Plan(
+        t=t_k, cand_t=t, cand_reason=reason,
+        image_ord=img_ord[keep], image_t=img_t[keep],
+        voxel_ord=vo[vi[keep]] if len(vo) else np.zeros(0, np.int64), voxel_t=vs[vi[keep]] if len(vs) else np.zeros(0, np.int64),
+        map_ord=map_ord, map_t=map_t, sample_map=sample_map,
+    )
+
+
+# -- decoding of kept messages -----------------------------------------------------------
+def decode_image(msg: object, msgtype: str) -> NDArray[np.uint8]:
+    """Return an RGB uint8 image (H, W, 3) from a CompressedImage or Image message."""
+    from PIL import Image
+
+    if msgtype.endswith("CompressedImage"):
+        try:
+            img = Image.open(io.BytesIO(bytes(msg.data))).convert("RGB")  # type: ignore[attr-defined]
+        except Exception as err:  # noqa: BLE001 - PIL raises several types
+            raise DecodeError(f"CompressedImage ({msg.format!r}) does not decode: {err}") from err  # type: ignore[attr-defined]
+        return np.asarray(img)
+    enc = str(msg.encoding).lower()  # type: ignore[attr-defined]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)  # type: ignore[attr-defined]
+    raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    chans = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
+    if enc not in chans:
+        raise DecodeError(f"Image encoding {enc!r} unsupported; expected one of {sorted(chans)}")
+    arr = raw[: h * step].reshape(h, step)[:, : w * chans[enc]].reshape(h, w, chans[enc])
+    if enc.startswith("bgr"):
+        arr = arr[..., [2, 1, 0]]
+    if chans[enc] == 1:
+        arr = np.repeat(arr, 3, axis=-1)
+    return np.ascontiguousarray(arr[..., :3])
+
+
+def resize_image(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
+    """Return ``img`` resized (bilinear) to width x height."""
+    if img.shape[1] == width and img.shape[0] == height:
+        return img
+    from PIL import Image
+
+    return np.asarray(Image.fromarray(img).resize((width, height), Image.BILINEAR))
+
+
+def rescale_K(K: NDArray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> NDArray:
+    """Return intrinsics K for an image resized from src to dst size (pixel centres at integers)."""
+    sx, sy = dst_wh[0] / src_wh[0], dst_wh[1] / src_wh[1]
+    K2 = np.array(K, dtype=np.float64, copy=True)
+    K2[0, 0] *= sx
+    K2[1, 1] *= sy
+    K2[0, 1] *= sx
+    K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K2
+
+
+def decode_pointcloud(msg: object) -> NDArray[np.float32]:
+    """Return the finite xyz points (N, 3) of a PointCloud2."""
+    fields = {f.name: f for f in msg.fields}  # type: ignore[attr-defined]
+    if not all(k in fields for k in "xyz"):
+        raise DecodeError(f"PointCloud2 has fields {sorted(fields)}; expected x, y, z")
+    kinds = {7: "f4", 8: "f8"}
+    if any(fields[k].datatype not in kinds for k in "xyz"):
+        raise DecodeError("PointCloud2 x/y/z must be FLOAT32 or FLOAT64")
+    endian = ">" if msg.is_bigendian else "<"  # type: ignore[attr-defined]
+    n = int(msg.width) * int(msg.height)  # type: ignore[attr-defined]
+    dt = np.dtype({"names": list("xyz"), "formats": [endian + kinds[fields[k].datatype] for k in "xyz"],
+                   "offsets": [fields[k].offset for k in "xyz"], "itemsize": int(msg.point_step)})  # type: ignore[attr-defined]
+    raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    rec = raw[: n * dt.itemsize].view(dt)
+    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float32)
+    return pts[np.all(np.isfinite(pts), axis=1)]
+
+
+def _chain(static: dict[tuple[str, str], NDArray], parent: str, child: str) -> NDArray | None:
+    """Return T_parent_child through the static TF tree, or None."""
+    edges: dict[str, list[tuple[str, NDArray]]] = defaultdict(list)
+    for (p, c), T in static.items():
+        edges[p].append((c, T))
+        edges[c].append((p, invert(T)))
+    todo = [(parent, np.eye(4))]
+    seen = {parent}
+    while todo:
+        node, T = todo.pop()
+        if node == child:
+            return T
+        for nxt, Tn in edges[node]:
+            if nxt not in seen:
+                seen.add(nxt)
+                todo.append((nxt, T @ Tn))
+    return None
+
+
+# -- the stage ---------------------------------------------------------------------------
+def hash_bag(path: Path) -> str:
+    """Return the sha256 of a bag file, or of a rosbag2 folder's files in name order."""
+    h = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for f in files:
+        with f.open("rb") as fh:
+            for block in iter(lambda: fh.read(1 << 22), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig) -> ExtractResult:
+    """Read the bags of one drive into the drive store ``out`` (written atomically)."""
+    import zarr
+
+    tmp = st.partial_path(out)
+    import shutil
+
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        with BagSet(paths) as bags:
+            topics = bags.topics()
+            roles = _roles(cfg, topics)
+            scan = _scan(bags, cfg, roles)
+            track_, warnings = _poses(cfg, scan)
+            plan = _select(cfg, track_, scan)
+            if len(plan.t) == 0:
+                counts = _reason_counts(plan.cand_reason)
+                raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {counts}")
+            extr = _extrinsics(cfg, scan)
+            root = zarr.open_group(str(tmp), mode="w")
+            _write_small(root, cfg, scan, track_, plan, extr)
+            _write_large(root, bags, cfg, roles, scan, track_, plan)
+        result = ExtractResult(
+            store=out,
+            topics=[s.summary() for s in scan.stats.values()],
+            n_candidates=len(plan.cand_t),
+            n_samples=len(plan.t),
+            rejected=_reason_counts(plan.cand_reason),
+            maps_kept={r: len(plan.map_t[r]) for r in RANGES},
+            skew_s=_skews(plan),
+            warnings=warnings,
+        )
+        from gtgen.config import save_config
+
+        root.attrs.update(st.jsonable({
+            "store": st.DRIVE_STORE, "version": st.DRIVE_VERSION, "complete": True,
+            "bags": [{"path": str(p.resolve()), "sha256": hash_bag(p)} for p in paths],
+            "config": cfg.model_dump(mode="json"),
+            "report": {"topics": result.topics, "n_candidates": result.n_candidates, "n_samples": result.n_samples,
+                       "rejected": result.rejected, "maps_kept": result.maps_kept, "skew_s": result.skew_s,
+                       "warnings": warnings},
+            "reasons": reasons.REASONS,
+            "image_size": [cfg.extract.image_width, cfg.extract.image_height],
+            "cameras": list(CAMERAS),
+        }))
+        save_config(cfg, tmp / "gtgen-config.yaml")
+        st.finalize(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return result
+
+
+def _reason_counts(codes: NDArray) -> dict[str, int]:
+    u, c = np.unique(codes, return_counts=True)
+    return {reasons.name(k): int(v) for k, v in zip(u, c) if k != reasons.OK}
+
+
+def _skews(plan: _Plan) -> dict[str, float]:
+    if len(plan.t) == 0:
+        return {}
+    img = np.abs(plan.image_t - plan.t[:, None]) * 1e-9
+    vox = np.abs(plan.voxel_t - plan.t) * 1e-9
+    return {"image_max": round(float(img.max()), 4), "image_mean": round(float(img.mean()), 4),
+            "voxel_max": round(float(vox.max()), 4), "voxel_mean": round(float(vox.mean()), 4)}
+
+
+def _poses(cfg: GtgenConfig, scan: _Scan) -> tuple[PoseTrack, list[str]]:
+    src = scan.odom if scan.odom else scan.tf_dyn
+    warnings: list[str] = []
+    if not src:
+        raise TopicError(f"role 'odometry': no usable message on '{cfg.topics.odometry}' (nor odom->base TF on '{cfg.topics.tf}')")
+    t = np.array([s[0] for s in src], np.int64)
+    track_, ooo, dups = PoseTrack.from_unsorted(t, np.array([s[1] for s in src]), np.array([s[2] for s in src]),
+                                               int(cfg.extract.pose_tolerance_s * 1e9))
+    if ooo:
+        warnings.append(f"odometry: {ooo} out-of-order stamps (sorted)")
+    if dups:
+        warnings.append(f"odometry: {dups} duplicate stamps (dropped)")
+    if len(track_) < 2:
+        raise PoseError(f"odometry has {len(track_)} distinct stamps; expected at least 2")
+    gaps = np.diff(track_.t_ns) * 1e-9
+    big = gaps > 2 * cfg.extract.pose_tolerance_s
+    if big.any():
+        warnings.append(f"odometry: {int(big.sum())} gaps longer than {2 * cfg.extract.pose_tolerance_s:.2f} s (max {gaps.max():.2f} s); samples there are rejected")
+    for s in scan.stats.values():
+        if s.record_skew_max_s > cfg.extract.record_skew_warn_s:
+            warnings.append(f"{s.topic}: header stamps differ from record times by up to {s.record_skew_max_s:.1f} s (header stamps are used)")
+    return track_, warnings
+
+
+def _extrinsics(cfg: GtgenConfig, scan: _Scan) -> dict[str, tuple[NDArray, NDArray, tuple[int, int]]]:
+    out = {}
+    W, H = cfg.extract.image_width, cfg.extract.image_height
+    for c in CAMERAS:
+        info = scan.info.get(c)
+        if info is None:
+            raise TopicError(f"role 'camera_info.{c}': no CameraInfo on '{cfg.topics.cameras[c].info}'")
+        Kraw = np.asarray(getattr(info, "k", None) if hasattr(info, "k") else info.K, dtype=np.float64).reshape(3, 3)
+        src = (int(info.width), int(info.height))
+        K = rescale_K(Kraw, src, (W, H))
+        frame = scan.frames.get(f"camera.{c}") or info.header.frame_id.lstrip("/")
+        T = _chain(scan.static, cfg.topics.base_frame, frame)
+        if T is None:
+            raise TopicError(f"camera '{c}': no static transform from '{cfg.topics.base_frame}' to '{frame}' in '{cfg.topics.tf_static}'")
+        out[c] = (K, T, src)
+    return out
+
+
+def _create(root, path: str, shape: tuple, chunks: tuple | None = None):
+    sp = st.spec(path)
+    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks or shape if all(shape) else None,
+                             fill_value=sp.fill_value())
+
+
+def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _Plan, extr) -> None:
+    _create(root, "poses/t_ns", track_.t_ns.shape)[:] = track_.t_ns
+    _create(root, "poses/pos_odom_m", track_.pos.shape)[:] = track_.pos
+    _create(root, "poses/quat_odom_xyzw", track_.quat.shape)[:] = track_.quat
+    g = sorted(scan.gnss, key=lambda x: x[0])
+    G = len(g)
+    cols = {
+        "gnss/t_ns": np.array([x[0] for x in g], np.int64).reshape(G),
+        "gnss/lat_deg": np.array([x[1] for x in g], np.float64).reshape(G),
+        "gnss/lon_deg": np.array([x[2] for x in g], np.float64).reshape(G),
+        "gnss/alt_m": np.array([x[3] for x in g], np.float64).reshape(G),
+        "gnss/var_enu_m2": np.array([x[4] for x in g], np.float64).reshape(G, 3),
+        "gnss/status": np.array([x[5] for x in g], np.int8).reshape(G),
+    }
+    for k, v in cols.items():
+        a = _create(root, k, v.shape, chunks=tuple(max(1, s) for s in v.shape))
+        if v.size:
+            a[:] = v
+    _create(root, "candidates/t_ns", plan.cand_t.shape)[:] = plan.cand_t
+    _create(root, "candidates/reason", plan.cand_reason.shape)[:] = plan.cand_reason
+    S = len(plan.t)
+    pos, quat = track_.interpolate(plan.t)
+    dist = np.interp(plan.t.astype(np.float64), track_.t_ns.astype(np.float64), track_.distance())
+    _create(root, "samples/t_ns", (S,))[:] = plan.t
+    _create(root, "samples/pos_odom_m", (S, 3))[:] = pos
+    _create(root, "samples/quat_odom_xyzw", (S, 4))[:] = quat
+    _create(root, "samples/distance_m", (S,))[:] = dist
+    for r in RANGES:
+        _create(root, f"samples/map_index_{r}", (S,))[:] = plan.sample_map[r]
+    _create(root, "samples/image_t_ns", (S, 4))[:] = plan.image_t
+    _create(root, "samples/voxel_t_ns", (S,))[:] = plan.voxel_t
+    _create(root, "calib/K", (4, 3, 3))[:] = np.stack([extr[c][0] for c in CAMERAS])
+    _create(root, "calib/T_base_cam", (4, 4, 4))[:] = np.stack([extr[c][1] for c in CAMERAS])
+
+
+def _map_to_odom(cfg: GtgenConfig, scan: _Scan, g: GridMapData) -> tuple[NDArray, float]:
+    """Return the grid centre and yaw in odom, through tf_static if the map frame differs."""
+    if g.frame_id in ("", cfg.topics.odom_frame):
+        return g.center_m, g.yaw_rad
+    T = _chain(scan.static, cfg.topics.odom_frame, g.frame_id)
+    if T is None:
+        raise DecodeError(f"GridMap frame '{g.frame_id}' has no static transform to '{cfg.topics.odom_frame}'")
+    Tc = T @ yaw_transform(*g.center_m, g.yaw_rad)
+    return Tc[:3, 3], float(np.arctan2(Tc[1, 0], Tc[0, 0]))
+
+
+def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack, plan: _Plan) -> None:
+    tp = cfg.topics
+    S = len(plan.t)
+    W, H = cfg.extract.image_width, cfg.extract.image_height
+    images = _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 4, H, W, 3))
+    # which (role, ordinal) goes where
+    want: dict[str, dict[int, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for c_i, c in enumerate(CAMERAS):
+        for s_i, o in enumerate(plan.image_ord[:, c_i]):
+            want[f"camera.{c}"][int(o)].append(s_i)
+    for s_i, o in enumerate(plan.voxel_ord):
+        want["voxel_map"][int(o)].append(s_i)
+    map_arrays = {}
+    for r in RANGES:
+        for k_i, o in enumerate(plan.map_ord[r]):
+            want[f"map.{r}"][int(o)].append(k_i)
+        map_arrays[r] = None
+    voxels: list[NDArray | None] = [None] * S
+    vox_pts = root.create_array("voxel_points_odom_m", shape=(0, 3), dtype="float32", chunks=(65536, 3), fill_value=0.0)
+    offsets = np.zeros(S + 1, np.int64)
+    next_sample = 0
+    centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
+    yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
+    ordinal: dict[str, int] = defaultdict(int)
+    big = [t for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"]
+    img_buf: dict[int, NDArray] = {}
+    layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
+    total = sum(bags.topics()[t].count for t in big)
+    for topic, msgtype, _, msg, err in track(bags.messages(big), "extract: writing", total=total):
+        role = roles[topic]
+        o = ordinal[role]
+        ordinal[role] += 1
+        targets = want[role].get(o)
+        if not targets:
+            continue
+        if msg is None:
+            raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
+        if role.startswith("camera."):
+            c_i = CAMERAS.index(role.split(".")[1])
+            img = resize_image(decode_image(msg, msgtype), W, H)
+            for s_i in targets:
+                buf = img_buf.setdefault(s_i, np.zeros((4, H, W, 3), np.uint8))
+                buf[c_i] = img
+        elif role == "voxel_map":
+            pts = decode_pointcloud(msg)
+            frame = msg.header.frame_id.lstrip("/")
+            if frame not in ("", tp.odom_frame):
+                if frame != tp.base_frame:
+                    raise DecodeError(f"voxel map frame '{frame}' unsupported; expected '{tp.odom_frame}' or '{tp.base_frame}'")
+                T = track_.transforms(np.array([stamp_ns(msg.header)]))[0]
+                pts = (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+            if len(pts) > cfg.shards.max_voxel_points:
+                # keep the points nearest the vehicle: the far ones matter least
+                c = pts.mean(axis=0)
+                pts = pts[np.argsort(np.linalg.norm(pts[:, :2] - c[:2], axis=1), kind="stable")[: cfg.shards.max_voxel_points]]
+            for s_i in targets:
+                voxels[s_i] = pts
+        else:
+            r = role.split(".")[1]
+            g = decode_gridmap(msg, list(layer_names))
+            arr = map_arrays[r]
+            if arr is None:
+                shape = (len(plan.map_t[r]),) + g.shape
+                arr = map_arrays[r] = {
+                    name: _create(root, f"maps/{r}/{name}", shape, chunks=(1,) + g.shape)
+                    for name in ("elevation_m", "risk", "confidence")
+                }
+                root[f"maps/{r}"].attrs.update({"resolution_m": g.resolution_m, "shape": list(g.shape), "frame": tp.odom_frame})
+            if g.shape != tuple(arr["elevation_m"].shape[1:]):
+                raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
+            center, yaw = _map_to_odom(cfg, scan, g)
+            for k_i in targets:
+                for name, layer in zip(("elevation_m", "risk", "confidence"), layer_names):
+                    arr[name][k_i] = g.layers[layer]
+                centers[r][k_i] = center
+                yaws[r][k_i] = yaw
+        # flush finished samples in order, so memory holds only a few in flight
+        while next_sample < S and next_sample in img_buf and voxels[next_sample] is not None and _images_done(plan, next_sample, ordinal):
+            images[next_sample] = img_buf.pop(next_sample)
+            pts = voxels[next_sample]
+            voxels[next_sample] = None
+            offsets[next_sample + 1] = offsets[next_sample] + len(pts)
+            if len(pts):
+                vox_pts.append(pts, axis=0)
+            next_sample += 1
+    if next_sample != S:
+        raise BagError(f"bags ended before every selected message was read ({next_sample} of {S} samples complete)")
+    _create(root, "samples/voxel_offsets", (S + 1,))[:] = offsets
+    for r in RANGES:
+        if map_arrays[r] is None:
+            raise DecodeError(f"no {r} GridMap could be written")
+        _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
+        _create(root, f"maps/{r}/center_odom_m", centers[r].shape)[:] = centers[r]
+        _create(root, f"maps/{r}/yaw_odom_rad", yaws[r].shape)[:] = yaws[r]
+
+
+def _images_done(plan: _Plan, s_i: int, ordinal: dict[str, int]) -> bool:
+    return all(ordinal[f"camera.{c}"] > plan.image_ord[s_i, c_i] for c_i, c in enumerate(CAMERAS))

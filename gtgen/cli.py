@@ -1,0 +1,177 @@
+"""The ``gtgen`` command line. The only module that prints or exits.
+
+Every command reads and writes a workspace in the current directory by default:
+``gtgen extract bag.mcap`` -> ``./gtgen_ws/drive.zarr``; ``gtgen fuse`` and
+``gtgen dem-align`` read it and write ``./gtgen_ws/dataset.zarr``; ``gtgen train``
+reads that. Explicit paths override. Heavy imports live inside the commands so that
+``--help`` is instant.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from gtgen import __version__
+from gtgen.errors import GtgenError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    rich_markup_mode="markdown",
+    help="gtgen: pseudo ground truth for BEV elevation and traversability learning (RoadRunner M&M).",
+    pretty_exceptions_enable=False,
+)
+
+WORKSPACE = Path("gtgen_ws")
+ConfigOpt = typer.Option(None, "--config", "-c", help="partial YAML over the defaults in configs/")
+
+
+def _console():
+    from rich.console import Console
+
+    import shutil
+
+    return Console(width=max(120, shutil.get_terminal_size((120, 40)).columns))
+
+
+def _load(config: Optional[Path], *overrides: dict[str, Any]):
+    from gtgen.config import load_config
+
+    return load_config(config, *overrides)
+
+
+def _table(title: str, rows: list[tuple[str, Any]]) -> None:
+    from rich.table import Table
+
+    t = Table(title=title, show_header=False)
+    t.add_column("", style="bold")
+    t.add_column("")
+    for k, v in rows:
+        t.add_row(str(k), str(v))
+    _console().print(t)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"gtgen {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="print the version and exit"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="log debug messages"),
+) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+
+@app.command()
+def synth(
+    out: Path = typer.Argument(..., help="output folder (created; must be empty or absent)"),
+    seed: Optional[int] = typer.Option(None, help="random seed [default from config: 0]"),
+    duration: Optional[float] = typer.Option(None, help="drive duration [s] [default from config: 60]"),
+    format: Optional[str] = typer.Option(None, "--format", help="mcap | bag | both [default from config: both]"),
+    overwrite: bool = typer.Option(False, help="replace a non-empty OUT"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Write a seeded synthetic drive: bags + DEM tiles + truth.
+
+    **Examples**
+
+        gtgen synth drive                      # 60 s drive, ROS 2 MCAP and ROS 1 bag
+        gtgen synth drive --seed 3 --duration 120 --format mcap
+    """
+    over: dict[str, Any] = {}
+    if seed is not None:
+        over["seed"] = seed
+    if duration is not None:
+        if duration <= 0:
+            raise GtgenError(f"--duration {duration} must be a positive number of seconds")
+        over["duration_s"] = duration
+    if format is not None:
+        if format not in ("mcap", "bag", "both"):
+            raise GtgenError(f"--format {format!r} unknown; expected one of ['mcap', 'bag', 'both']")
+        over["formats"] = format
+    cfg = _load(config, {"synth": over})
+    from gtgen.synth import run_synth
+
+    res = run_synth(cfg, out, overwrite=overwrite)
+    rows: list[tuple[str, Any]] = [
+        ("output", res.out),
+        ("bags", ", ".join(p.name for p in res.bags)),
+        ("DEM tiles", f"{len(res.dem_tiles)} in {res.out / 'dem'}"),
+        ("duration", f"{res.duration_s:.1f} s"),
+        ("distance", f"{res.distance_m:.0f} m"),
+    ]
+    rows += [(f"  {k}", v) for k, v in sorted(res.counts.items())]
+    _table("gtgen synth", rows)
+
+
+@app.command()
+def extract(
+    bags: list[Path] = typer.Argument(..., help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
+    out: Path = typer.Option(WORKSPACE / "drive.zarr", "-o", "--out", help="drive store to write"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Read a drive's bags into a per-drive store: poses, GNSS, maps, images, voxel maps.
+
+    **Examples**
+
+        gtgen extract bag.mcap                         # -> ./gtgen_ws/drive.zarr
+        gtgen extract run_0.bag run_1.bag -o runs/a.zarr
+        gtgen extract rosbag2_folder --config my_robot.yaml
+    """
+    cfg = _load(config)
+    from gtgen.bag.extract import run_extract
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    res = run_extract(bags, out, cfg)
+    from rich.table import Table
+
+    t = Table(title="gtgen extract: topics")
+    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "record-header max s"):
+        t.add_column(col)
+    for s in res.topics:
+        t.add_row(s["topic"], s["role"], str(s["count"]), str(s["rate_hz"]), str(s["max_gap_s"]),
+                  str(s["decode_failures"]) + (f" ({s['first_error'][:40]})" if s["first_error"] else ""),
+                  str(s["record_minus_header_max_s"]))
+    _console().print(t)
+    rows: list[tuple[str, Any]] = [
+        ("store", res.store),
+        ("candidates", res.n_candidates),
+        ("samples kept", res.n_samples),
+    ]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    rows += [(f"maps kept ({k})", v) for k, v in res.maps_kept.items()]
+    rows += [(f"skew {k}", f"{v:.3f} s") for k, v in res.skew_s.items()]
+    rows += [("warning", w) for w in res.warnings]
+    _table("gtgen extract", rows)
+
+
+def main() -> None:
+    """Run the CLI; map gtgen errors to one line on stderr and exit code 1."""
+    try:
+        app(standalone_mode=False)
+    except GtgenError as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        typer.echo("error: interrupted", err=True)
+        sys.exit(130)
+    except typer.Exit as ex:
+        sys.exit(ex.exit_code)
+    except typer.Abort:
+        typer.echo("error: aborted", err=True)
+        sys.exit(1)
+    except Exception as err:  # click usage errors and the like
+        import click
+
+        if isinstance(err, click.exceptions.ClickException):
+            err.show()
+            sys.exit(err.exit_code)
+        raise

@@ -1,0 +1,295 @@
+"""Validated configuration: one pydantic model per stage, nested in :class:`GtgenConfig`.
+
+No file at all gives working defaults; a YAML file is a partial override of them
+(``--config FILE``). ``configs/default.yaml`` lists every key with its unit and a
+test keeps it equal to these defaults.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from gtgen.errors import ConfigError, InputNotFoundError
+
+RANGES = ("micro", "short")
+CAMERAS = ("front", "left", "right", "back")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class GridSpec(_Model):
+    """A square vehicle-centric grid: ``size`` x ``size`` cells of ``resolution_m``."""
+
+    size: int = Field(gt=0, le=8192, description="cells per side")
+    resolution_m: float = Field(gt=0, description="cell edge length [m]")
+
+    @property
+    def length_m(self) -> float:
+        """Edge length of the grid [m]."""
+        return self.size * self.resolution_m
+
+
+class GridsConfig(_Model):
+    """The two target grids of the paper (Sec. III-A)."""
+
+    micro: GridSpec = Field(default_factory=lambda: GridSpec(size=500, resolution_m=0.2))
+    short: GridSpec = Field(default_factory=lambda: GridSpec(size=250, resolution_m=0.8))
+
+    def get(self, rng: str) -> GridSpec:
+        """Return the grid of range ``rng`` ('micro' or 'short')."""
+        if rng not in RANGES:
+            raise ConfigError(f"range {rng!r} unknown; expected one of {list(RANGES)}")
+        return getattr(self, rng)
+
+
+class LayersConfig(_Model):
+    """GridMap layer names of the three X-Racer layers."""
+
+    elevation: str = Field("elevation", description="elevation layer [m, in the map frame]")
+    risk: str = Field("risk", description="traversability risk layer [0 safe .. 1 fatal]")
+    confidence: str = Field("confidence", description="confidence layer [0 .. 1]")
+
+
+class CameraTopics(_Model):
+    image: str = Field(description="sensor_msgs/CompressedImage or Image topic")
+    info: str = Field(description="sensor_msgs/CameraInfo topic")
+
+
+def _default_cameras() -> dict[str, CameraTopics]:
+    return {
+        c: CameraTopics(image=f"/cam_{c}/image/compressed", info=f"/cam_{c}/camera_info")
+        for c in CAMERAS
+    }
+
+
+class TopicsConfig(_Model):
+    """Topic -> role mapping (SPEC section 2); ``configs/xracer.yaml`` is the default."""
+
+    map_micro: str = Field("/xracer/map/micro", description="grid_map_msgs/GridMap, micro range")
+    map_short: str = Field("/xracer/map/short", description="grid_map_msgs/GridMap, short range")
+    odometry: str = Field("/xracer/odometry", description="nav_msgs/Odometry odom -> base")
+    tf: str = Field("/tf", description="tf2_msgs/TFMessage")
+    tf_static: str = Field("/tf_static", description="tf2_msgs/TFMessage, latched extrinsics")
+    gnss: str = Field("/gnss/fix", description="sensor_msgs/NavSatFix")
+    cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras)
+    voxel_map: str = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2")
+    lidar: str | None = Field(None, description="optional raw sensor_msgs/PointCloud2 scans")
+    odom_frame: str = Field("odom", description="frame of odometry and maps")
+    base_frame: str = Field("base_link", description="vehicle base frame")
+    layers: LayersConfig = Field(default_factory=LayersConfig)
+
+    def map_topic(self, rng: str) -> str:
+        """Return the GridMap topic of range ``rng``."""
+        return self.map_micro if rng == "micro" else self.map_short
+
+    @model_validator(mode="after")
+    def _four_cameras(self) -> TopicsConfig:
+        if sorted(self.cameras) != sorted(CAMERAS):
+            raise ValueError(f"cameras must be exactly {list(CAMERAS)}, got {sorted(self.cameras)}")
+        return self
+
+
+class SynthConfig(_Model):
+    """The simulated drive (``gtgen synth``); every realism knob is here."""
+
+    seed: int = Field(0, ge=0, description="random seed; same seed, same bytes")
+    duration_s: float = Field(60.0, gt=0, le=3600, description="drive duration [s]")
+    formats: Literal["mcap", "bag", "both"] = Field("both", description="bag flavours written")
+    crs: str = Field("EPSG:26910", description="projected CRS of the terrain and DEM")
+    origin_e_m: float = Field(708000.0, description="UTM easting of the drive start [m]")
+    origin_n_m: float = Field(3944000.0, description="UTM northing of the drive start [m]")
+    speed_min_mps: float = Field(5.0, gt=0, description="minimum vehicle speed [m/s]")
+    speed_max_mps: float = Field(12.0, gt=0, description="maximum vehicle speed [m/s]")
+    map_rate_hz: float = Field(10.0, gt=0, description="X-Racer map rate per range [Hz]")
+    odom_rate_hz: float = Field(50.0, gt=0, description="odometry rate [Hz]")
+    gnss_rate_hz: float = Field(10.0, gt=0, description="GNSS fix rate [Hz]")
+    camera_rate_hz: float = Field(5.0, gt=0, description="camera frame rate, all four [Hz]")
+    voxel_rate_hz: float = Field(2.0, gt=0, description="voxel map rate [Hz]")
+    lidar_rate_hz: float = Field(0.0, ge=0, description="raw lidar scan rate, 0 = off [Hz]")
+    image_width: int = Field(160, ge=16, description="rendered image width [px]")
+    image_height: int = Field(100, ge=16, description="rendered image height [px]")
+    camera_hfov_deg: float = Field(100.0, gt=10, lt=170, description="horizontal field of view [deg]")
+    lidar_height_m: float = Field(2.0, gt=0, description="lidar height above the base [m]")
+    lidar_range_m: float = Field(90.0, gt=1, description="maximum lidar range [m]")
+    confidence_range_m: float = Field(35.0, gt=0, description="range where confidence halves [m]")
+    elevation_noise_m: float = Field(0.04, ge=0, description="elevation noise at 0 m range [m]")
+    elevation_noise_per_m: float = Field(0.002, ge=0, description="noise growth with range [m/m]")
+    drift_xy_per_m: float = Field(0.003, ge=0, description="odometry xy drift per metre driven")
+    drift_yaw_deg_per_100m: float = Field(0.2, ge=0, description="odometry heading drift")
+    drift_z_m_per_s: float = Field(0.004, ge=0, description="odometry z drift rate [m/s]")
+    gnss_bias_m: float = Field(1.5, ge=0, description="std of the slowly varying GNSS bias [m]")
+    gnss_bias_tau_s: float = Field(120.0, gt=0, description="correlation time of the bias [s]")
+    gnss_noise_m: float = Field(0.3, ge=0, description="white GNSS noise std per axis [m]")
+    geoid_offset_m: float = Field(-33.0, description="NAVD88 -> ellipsoid height offset [m]")
+    dem_tile_m: int = Field(400, ge=50, description="DEM tile edge [m]")
+    dem_margin_m: float = Field(150.0, ge=0, description="DEM coverage beyond the path [m]")
+    dem_noise_m: float = Field(0.03, ge=0, description="DEM height noise [m]")
+    hill_amplitude_m: float = Field(6.0, ge=0, description="rolling hill amplitude [m]")
+    valley_depth_m: float = Field(8.0, ge=0, description="valley depth [m]")
+    ditch_depth_m: float = Field(0.35, ge=0, description="ditch / rut depth [m]")
+    trees_per_ha: float = Field(2.0, ge=0, description="tree density [1/ha]")
+    rocks_per_ha: float = Field(6.0, ge=0, description="rock density [1/ha]")
+    workers: int = Field(2, ge=1, le=64, description="processes simulating in parallel (output does not depend on it)")
+    circular_buffer_every: int = Field(3, ge=0, description="every n-th map has non-zero start indices (0 = never)")
+
+    @model_validator(mode="after")
+    def _speeds(self) -> SynthConfig:
+        if self.speed_max_mps < self.speed_min_mps:
+            raise ValueError(
+                f"speed_max_mps={self.speed_max_mps} is below speed_min_mps={self.speed_min_mps}"
+            )
+        return self
+
+
+class ExtractConfig(_Model):
+    """Bags -> drive store, and sample selection."""
+
+    stride_m: float = Field(2.0, gt=0, description="travel between samples [m]")
+    image_skew_s: float = Field(0.05, ge=0, description="max image-to-sample time skew [s]")
+    map_skew_s: float = Field(0.1, ge=0, description="max GridMap-to-sample time skew [s]")
+    voxel_skew_s: float = Field(0.3, ge=0, description="max voxel-map-to-sample skew [s]; the voxel map is stored with its pose, so a few hundred ms is harmless")
+    pose_tolerance_s: float = Field(0.1, ge=0, description="max gap to an odometry message before a pose is refused [s]")
+    map_rate_hz: float = Field(2.0, gt=0, description="GridMaps kept per range [Hz]; they overlap heavily")
+    image_width: int = Field(160, ge=8, description="stored image width [px]")
+    image_height: int = Field(100, ge=8, description="stored image height [px]")
+    record_skew_warn_s: float = Field(1.0, ge=0, description="report header vs record time differences above this [s]")
+
+
+class FuseConfig(_Model):
+    """Hindsight fusion (SPEC section 4, 'fuse')."""
+
+    window_s: float = Field(60.0, gt=0, description="future window after the sample [s]")
+    past_s: float = Field(0.0, ge=0, description="past window before the sample [s]")
+    min_conf: float = Field(0.1, ge=0, le=1, description="elevation used where confidence > this")
+    risk_min_conf: float = Field(0.5, ge=0, le=1, description="risk used where confidence >= this")
+    tile_cells: int = Field(128, ge=8, le=4096, description="accumulator tile edge [cells]")
+
+
+class DemConfig(_Model):
+    """DEM placement, ICP refinement and inpainting."""
+
+    dir: str | None = Field(None, description="DEM folder; default: 'dem/' beside the first bag")
+    min_fitness: float = Field(0.6, ge=0, le=1, description="reject a sample below this ICP fitness")
+    max_rmse_m: float = Field(0.25, gt=0, description="reject a sample above this ICP inlier RMSE [m]")
+    icp_max_distance_m: float = Field(1.0, gt=0, description="ICP correspondence distance [m]")
+    icp_iterations: int = Field(30, ge=1, description="ICP iterations")
+    icp_max_points: int = Field(20000, ge=100, description="source points used by ICP (subsampled)")
+    gnss_outlier_m: float = Field(4.0, gt=0, description="GNSS residual treated as an outlier [m]")
+    min_gnss_fixes: int = Field(10, ge=3, description="fewest usable fixes for the drive fit")
+
+
+class ShardsConfig(_Model):
+    """The dataset store."""
+
+    val_fraction: float = Field(0.25, ge=0, lt=1, description="share of geography blocks held out")
+    split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")
+    max_voxel_points: int = Field(60000, ge=1, description="voxel-map points kept per sample")
+
+
+class TrainConfig(_Model):
+    """The M&M-lite trainer; presets live in ``configs/presets/``."""
+
+    preset: str = Field("tiny", description="name of the preset the values came from")
+    micro_size: int = Field(500, ge=8, description="micro grid cells the model predicts")
+    short_size: int = Field(250, ge=8, description="short grid cells the model predicts")
+    image_width: int = Field(160, ge=8, description="network image width [px]")
+    image_height: int = Field(100, ge=8, description="network image height [px]")
+    depth_min_m: float = Field(1.0, gt=0, description="first Lift-Splat depth bin [m]")
+    depth_max_m: float = Field(110.0, gt=0, description="last Lift-Splat depth bin [m]")
+    depth_step_m: float = Field(0.8, gt=0, description="Lift-Splat depth bin width [m]")
+    image_channels: int = Field(80, ge=1, description="Lift-Splat BEV channels")
+    pillar_channels: int = Field(256, ge=1, description="PointPillars BEV channels")
+    max_points_per_pillar: int = Field(16, ge=1, description="PointPillars points per pillar")
+    decoder_channels: int = Field(128, ge=4, description="decoder base width")
+    backbone_weights: str | None = Field(None, description="local image backbone checkpoint")
+    alpha: float = Field(0.2, ge=0, description="unobserved elevation weight")
+    mu: float = Field(2.0, ge=0, description="risk loss weight")
+    lam: float = Field(2.0, ge=0, description="elevation loss weight")
+    gamma: float = Field(5.0, ge=0, description="consistency loss weight")
+    elevation_clip_m: float = Field(25.0, gt=0, description="elevation clip, scaled to +-1 [m]")
+    fatal_risk: float = Field(0.5, gt=0, lt=1, description="fatal-risk threshold for P/R/F1")
+    lr: float = Field(5e-4, gt=0, description="peak learning rate (OneCycle)")
+    steps: int = Field(16000, ge=1, description="optimizer steps")
+    batch_size: int = Field(4, ge=1, description="samples per step")
+    workers: int = Field(0, ge=0, description="DataLoader workers")
+    ckpt_every: int = Field(500, ge=1, description="checkpoint every n steps")
+    seed: int = Field(0, ge=0, description="random seed")
+    device: str = Field("cpu", description="torch device")
+
+
+class GtgenConfig(_Model):
+    """Root configuration; every stage reads its own part."""
+
+    grids: GridsConfig = Field(default_factory=GridsConfig)
+    topics: TopicsConfig = Field(default_factory=TopicsConfig)
+    synth: SynthConfig = Field(default_factory=SynthConfig)
+    extract: ExtractConfig = Field(default_factory=ExtractConfig)
+    fuse: FuseConfig = Field(default_factory=FuseConfig)
+    dem: DemConfig = Field(default_factory=DemConfig)
+    shards: ShardsConfig = Field(default_factory=ShardsConfig)
+    train: TrainConfig = Field(default_factory=TrainConfig)
+
+
+def configs_dir() -> Path:
+    """Return the project's ``configs/`` folder (YAML only)."""
+    return Path(__file__).resolve().parent.parent / "configs"
+
+
+def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, val in over.items():
+        if isinstance(val, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], val)
+        else:
+            out[key] = val
+    return out
+
+
+def _format_validation(err: ValidationError) -> str:
+    first = err.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"]) or "<root>"
+    val = first.get("input")
+    shown = "" if isinstance(val, dict) else f" = {val!r}"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"config key '{loc}'{shown}: {first['msg']}{more}"
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """Return the mapping in YAML file ``path``."""
+    if not path.is_file():
+        raise InputNotFoundError(f"config file '{path}' does not exist")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"config file '{path}' is not valid YAML: {err}".splitlines()[0]) from err
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file '{path}' must hold a mapping, got {type(data).__name__}")
+    return data
+
+
+def build_config(*layers: dict[str, Any]) -> GtgenConfig:
+    """Return the defaults overridden by each partial mapping in ``layers``, in order."""
+    merged: dict[str, Any] = GtgenConfig().model_dump(mode="json")
+    for layer in layers:
+        merged = _deep_merge(merged, layer)
+    try:
+        return GtgenConfig.model_validate(merged)
+    except ValidationError as err:
+        raise ConfigError(_format_validation(err)) from err
+
+
+def load_config(path: Path | None = None, *overrides: dict[str, Any]) -> GtgenConfig:
+    """Return the defaults, overridden by YAML file ``path`` and then by ``overrides``."""
+    layers = [read_yaml(path)] if path is not None else []
+    return build_config(*layers, *overrides)
+
+
+def save_config(cfg: GtgenConfig, path: Path) -> None:
+    """Write the resolved ``cfg`` as YAML to ``path``."""
+    path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))

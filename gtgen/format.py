@@ -1,0 +1,40 @@
+"""Array specifications: the one way gtgen declares an on-disk array.
+
+Each store layout (drive store in ``gtgen/bag/store.py``, dataset in
+``gtgen/shards/schema.py``) is a list of :class:`ArraySpec`; ``data_schema.md``
+mirrors those lists and a test checks that they agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One array: path in the store, dtype, shape (symbols), units, frame, fill, meaning."""
+
+    path: str
+    dtype: str
+    shape: str
+    units: str
+    frame: str
+    fill: str
+    doc: str
+
+    def fill_value(self) -> object:
+        """Return the fill value as a Python object for zarr."""
+        if self.fill == "NaN":
+            return float("nan")
+        if self.fill in ("-", ""):
+            return 0
+        return np.dtype(self.dtype).type(float(self.fill) if "float" in self.dtype else int(self.fill)).item()
+
+
+def markdown_table(specs: list[ArraySpec]) -> str:
+    """Return ``specs`` as the markdown table used in data_schema.md."""
+    rows = ["| array | dtype | shape | units | frame | fill | meaning |", "|---|---|---|---|---|---|---|"]
+    rows += [f"| `{s.path}` | {s.dtype} | {s.shape} | {s.units} | {s.frame} | {s.fill} | {s.doc} |" for s in specs]
+    return "\n".join(rows)

@@ -1,0 +1,141 @@
+"""Build ROS 1 and ROS 2 messages from plain values, for one bag flavour at a time."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.bag.msgdefs import typestore
+
+
+class MessageFactory:
+    """Message constructors of one ROS flavour (field names differ between 1 and 2)."""
+
+    def __init__(self, ros1: bool) -> None:
+        self.ros1 = ros1
+        self.store = typestore(ros1)
+        self.T = self.store.types
+
+    def serialize(self, msg: object, msgtype: str) -> bytes:
+        """Return the wire bytes of ``msg`` for this flavour."""
+        if self.ros1:
+            return bytes(self.store.serialize_ros1(msg, msgtype))
+        return bytes(self.store.serialize_cdr(msg, msgtype))
+
+    def header(self, t_ns: int, frame: str, seq: int = 0) -> object:
+        stamp = self.T["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000))
+        if self.ros1:
+            return self.T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
+        return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def pose(self, p: NDArray, q: NDArray) -> object:
+        return self.T["geometry_msgs/msg/Pose"](
+            position=self.T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=self.T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
+
+    def transform_stamped(self, t_ns: int, parent: str, child: str, p: NDArray, q: NDArray) -> object:
+        tf = self.T["geometry_msgs/msg/Transform"](
+            translation=self.T["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            rotation=self.T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
+        return self.T["geometry_msgs/msg/TransformStamped"](header=self.header(t_ns, parent), child_frame_id=child, transform=tf)
+
+    def tf_message(self, transforms: list[object]) -> object:
+        return self.T["tf2_msgs/msg/TFMessage"](transforms=transforms)
+
+    def odometry(self, t_ns: int, frame: str, child: str, p: NDArray, q: NDArray, v: NDArray, w: NDArray, seq: int) -> object:
+        cov = np.diag([0.01, 0.01, 0.02, 0.001, 0.001, 0.002]).ravel()
+        V3 = self.T["geometry_msgs/msg/Vector3"]
+        return self.T["nav_msgs/msg/Odometry"](
+            header=self.header(t_ns, frame, seq),
+            child_frame_id=child,
+            pose=self.T["geometry_msgs/msg/PoseWithCovariance"](pose=self.pose(p, q), covariance=cov),
+            twist=self.T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=self.T["geometry_msgs/msg/Twist"](linear=V3(x=float(v[0]), y=float(v[1]), z=float(v[2])), angular=V3(x=float(w[0]), y=float(w[1]), z=float(w[2]))),
+                covariance=cov,
+            ),
+        )
+
+    def navsatfix(self, t_ns: int, frame: str, lat: float, lon: float, alt: float, cov_diag: NDArray, status: int, seq: int) -> object:
+        st = self.T["sensor_msgs/msg/NavSatStatus"](status=status, service=1)
+        return self.T["sensor_msgs/msg/NavSatFix"](
+            header=self.header(t_ns, frame, seq),
+            status=st,
+            latitude=float(lat),
+            longitude=float(lon),
+            altitude=float(alt),
+            position_covariance=np.diag(cov_diag).ravel().astype(np.float64),
+            position_covariance_type=2,
+        )
+
+    def compressed_image(self, t_ns: int, frame: str, jpeg: bytes, seq: int) -> object:
+        return self.T["sensor_msgs/msg/CompressedImage"](
+            header=self.header(t_ns, frame, seq), format="jpeg", data=np.frombuffer(jpeg, np.uint8)
+        )
+
+    def camera_info(self, t_ns: int, frame: str, width: int, height: int, K: NDArray, seq: int) -> object:
+        P = np.zeros((3, 4))
+        P[:, :3] = K
+        roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        names = ("D", "K", "R", "P") if self.ros1 else ("d", "k", "r", "p")
+        vals = (np.zeros(5), K.ravel().astype(np.float64), np.eye(3).ravel(), P.ravel())
+        return self.T["sensor_msgs/msg/CameraInfo"](
+            header=self.header(t_ns, frame, seq),
+            height=height,
+            width=width,
+            distortion_model="plumb_bob",
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **dict(zip(names, vals)),
+        )
+
+    def pointcloud_xyz(self, t_ns: int, frame: str, pts: NDArray, seq: int) -> object:
+        PF = self.T["sensor_msgs/msg/PointField"]
+        fields = [PF(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+        data = np.ascontiguousarray(pts, dtype="<f4").view(np.uint8).ravel()
+        return self.T["sensor_msgs/msg/PointCloud2"](
+            header=self.header(t_ns, frame, seq), height=1, width=len(pts), fields=fields,
+            is_bigendian=False, point_step=12, row_step=12 * len(pts), data=data, is_dense=True,
+        )
+
+    def gridmap(
+        self,
+        t_ns: int,
+        frame: str,
+        resolution: float,
+        center: NDArray,
+        layers: dict[str, NDArray],
+        start: tuple[int, int],
+        seq: int,
+    ) -> object:
+        """Return a GridMap of square layers given in gtgen layout (axis 0 = +x from -L/2).
+
+        grid_map stores index (0, 0) at the +x/+y corner in a column-major circular
+        buffer; the layers are flipped, rolled by ``start`` and flattened in Fortran order.
+        """
+        size = next(iter(layers.values())).shape[0]
+        MAD = self.T["std_msgs/msg/MultiArrayDimension"]
+        layout = self.T["std_msgs/msg/MultiArrayLayout"](
+            dim=[MAD(label="column_index", size=size, stride=size * size), MAD(label="row_index", size=size, stride=size)],
+            data_offset=0,
+        )
+        arrays = []
+        for arr in layers.values():
+            buf = np.roll(arr[::-1, ::-1], start, axis=(0, 1))
+            arrays.append(self.T["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.asfortranarray(buf).ravel(order="F").astype(np.float32)))
+        length = size * resolution
+        pose = self.pose(np.array([center[0], center[1], 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+        info_kw = dict(resolution=float(resolution), length_x=float(length), length_y=float(length), pose=pose)
+        if self.ros1:
+            info = self.T["grid_map_msgs/msg/GridMapInfo"](header=self.header(t_ns, frame, seq), **info_kw)
+            return self.T["grid_map_msgs/msg/GridMap"](
+                info=info, layers=list(layers), basic_layers=[next(iter(layers))], data=arrays,
+                outer_start_index=start[0], inner_start_index=start[1],
+            )
+        info = self.T["grid_map_msgs/msg/GridMapInfo"](**info_kw)
+        return self.T["grid_map_msgs/msg/GridMap"](
+            header=self.header(t_ns, frame), info=info, layers=list(layers), basic_layers=[next(iter(layers))],
+            data=arrays, outer_start_index=start[0], inner_start_index=start[1],
+        )

@@ -1,0 +1,356 @@
+"""Drive the simulated sensors over the path and write bags, DEM tiles and truth."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gtgen.config import GtgenConfig, save_config
+from gtgen.errors import ConfigError, GtgenError
+from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
+from gtgen.progress import track
+from gtgen.synth import sensors
+from gtgen.synth.drive import gnss_errors
+from gtgen.synth.messages import MessageFactory
+from gtgen.synth.world import SynthWorld
+
+log = logging.getLogger(__name__)
+
+MAP_LATENCY_NS = 50_000_000
+GNSS_FRAME = "gnss_link"
+LIDAR_FRAME = "lidar"
+VOXEL_M = 0.4
+VOXEL_HALF_M = 100.0
+
+
+def camera_frame(name: str) -> str:
+    """Return the optical frame id of camera ``name``."""
+    return f"cam_{name}_optical"
+
+
+@dataclass
+class SynthResult:
+    """What ``run_synth`` wrote."""
+
+    out: Path
+    bags: list[Path]
+    dem_tiles: list[Path]
+    counts: dict[str, int] = field(default_factory=dict)
+    duration_s: float = 0.0
+    distance_m: float = 0.0
+
+
+class _Sinks:
+    """Writes every message to each requested bag flavour."""
+
+    def __init__(self, tmp: Path, formats: str) -> None:
+        self.writers: list[tuple[MessageFactory, object, dict[str, object]]] = []
+        self.tmp = tmp
+        if formats in ("mcap", "both"):
+            from rosbags.rosbag2 import Writer
+            from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+
+            w = Writer(tmp / "ros2", version=9, storage_plugin=StoragePlugin.MCAP)
+            w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            w.open()
+            self.writers.append((MessageFactory(ros1=False), w, {}))
+        if formats in ("bag", "both"):
+            from rosbags.rosbag1 import Writer as Writer1
+
+            w1 = Writer1(tmp / "drive.bag")
+            w1.set_compression(Writer1.CompressionFormat.LZ4)
+            w1.open()
+            self.writers.append((MessageFactory(ros1=True), w1, {}))
+        self.counts: dict[str, int] = {}
+
+    def write_raw(self, topic: str, msgtype: str, t_ns: int, blobs: list[bytes]) -> None:
+        """Write serialized messages (one per flavour, in writer order) at record time ``t_ns``."""
+        for (fac, w, conns), blob in zip(self.writers, blobs):
+            if topic not in conns:
+                kw = {"latching": 1} if fac.ros1 and topic.endswith("static") else {}
+                conns[topic] = w.add_connection(topic, msgtype, typestore=fac.store, **kw)
+            w.write(conns[topic], int(t_ns), blob)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def close(self, out_tmp: Path) -> list[Path]:
+        paths = []
+        for fac, w, _ in self.writers:
+            w.close()
+            if fac.ros1:
+                paths.append(out_tmp / "drive.bag")
+            else:
+                # keep only the self-contained .mcap file: a bare MCAP with its schemas
+                mcap = next((self.tmp / "ros2").glob("*.mcap"))
+                mcap.rename(out_tmp / "drive.mcap")
+                shutil.rmtree(self.tmp / "ros2")
+                paths.append(out_tmp / "drive.mcap")
+        return paths
+
+
+def _prepare_out(out: Path, overwrite: bool) -> Path:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise ConfigError(f"output '{out}' exists and is not empty; choose another OUT or pass --overwrite")
+    parent = out.resolve().parent
+    if not parent.exists():
+        try:
+            parent.mkdir(parents=True)
+        except OSError as err:
+            raise ConfigError(f"cannot create the parent folder of OUT '{out}': {err.strerror}") from err
+    if not os.access(parent, os.W_OK):
+        raise ConfigError(f"output folder '{parent}' is not writable")
+    tmp = parent / f".{out.name}.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    return tmp
+
+
+def run_synth(cfg: GtgenConfig, out: Path, overwrite: bool = False) -> SynthResult:
+    """Write a synthetic drive into folder ``out``; all or nothing (a temp folder is renamed)."""
+    tmp = _prepare_out(out, overwrite)
+    try:
+        result = _write_drive(cfg, tmp)
+        save_config(cfg, tmp / "gtgen-config.yaml")
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    result.out = out
+    result.bags = [out / p.name for p in result.bags]
+    result.dem_tiles = [out / "dem" / p.name for p in result.dem_tiles]
+    return result
+
+
+def _write_drive(cfg: GtgenConfig, tmp: Path) -> SynthResult:
+    sc = cfg.synth
+    tp = cfg.topics
+    world = SynthWorld(sc)
+    from gtgen.synth.dem import write_dem_tiles
+
+    tiles = write_dem_tiles(world, tmp / "dem")
+    raster = sensors.RenderRaster(world.terrain, world.bounds)
+    sinks = _Sinks(tmp, sc.formats)
+    try:
+        _simulate(cfg, world, raster, sinks)
+        bags = sinks.close(tmp)
+    except BaseException:
+        for _, w, _ in sinks.writers:
+            try:
+                w.close()
+            except Exception:  # noqa: BLE001 - already failing; the temp folder is removed
+                pass
+        raise
+    _write_truth(cfg, world, tmp / "truth")
+    return SynthResult(
+        out=tmp, bags=bags, dem_tiles=tiles, counts=sinks.counts,
+        duration_s=sc.duration_s, distance_m=float(world.path.dist[-1]),
+    )
+
+
+def _period(base_hz: float, hz: float, name: str) -> int:
+    p = int(round(base_hz / hz))
+    if p < 1:
+        raise ConfigError(f"synth.{name} = {hz} Hz is faster than odom_rate_hz = {base_hz} Hz; expected at most {base_hz}")
+    return p
+
+
+class _Ticker:
+    """Builds every message of one odometry tick; a pure function of the tick index.
+
+    Randomness is drawn from generators seeded by (seed, stream, tick), so the bytes do
+    not depend on how ticks are spread over worker processes.
+    """
+
+    def __init__(self, cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster, formats: str) -> None:
+        from pyproj import Transformer
+
+        sc, tp = cfg.synth, cfg.topics
+        self.cfg, self.world, self.raster = cfg, world, raster
+        self.factories = [MessageFactory(ros1=r) for r in ((False,) if formats == "mcap" else (True,) if formats == "bag" else (False, True))]
+        self.to_wgs84 = Transformer.from_crs(sc.crs, "EPSG:4326", always_xy=True)
+        self.n = len(world.t_ns)
+        self.map_p = _period(sc.odom_rate_hz, sc.map_rate_hz, "map_rate_hz")
+        self.gnss_p = _period(sc.odom_rate_hz, sc.gnss_rate_hz, "gnss_rate_hz")
+        self.cam_p = _period(sc.odom_rate_hz, sc.camera_rate_hz, "camera_rate_hz")
+        self.vox_p = _period(sc.odom_rate_hz, sc.voxel_rate_hz, "voxel_rate_hz")
+        gnss_idx = np.arange(0, self.n, self.gnss_p)
+        self.gnss_err = gnss_errors(sc, world.t_ns[gnss_idx])
+        self.gnss_sigma = float(np.hypot(sc.gnss_bias_m, sc.gnss_noise_m))
+        self.K = sensors.camera_intrinsic(sc)
+        self.T_base_cam = {c: sensors.camera_extrinsic(c) for c in tp.cameras}
+        poses = world.poses
+        self.q_true = rpy_to_quat(poses.rpy[:, 0], poses.rpy[:, 1], poses.rpy[:, 2])
+        ro = world.odom.rpy_odom
+        self.q_odom = rpy_to_quat(ro[:, 0], ro[:, 1], ro[:, 2])
+        dt = 1.0 / sc.odom_rate_hz
+        self.vel_odom = np.gradient(world.odom.p_odom, dt, axis=0)
+        self.yaw_rate = np.gradient(np.unwrap(ro[:, 2]), dt)
+
+    def _msg(self, out: list, topic: str, msgtype: str, t_rec: int, build) -> None:
+        out.append((topic, msgtype, int(t_rec), [f.serialize(build(f), msgtype) for f in self.factories]))
+
+    def static_messages(self) -> list:
+        tp = self.cfg.topics
+        t0 = int(self.world.t_ns[0])
+        static = [(tp.base_frame, camera_frame(c), T[:3, 3], matrix_to_quat(T[:3, :3])) for c, T in self.T_base_cam.items()]
+        static.append((tp.base_frame, LIDAR_FRAME, np.array(sensors.LIDAR_MOUNT), np.array([0, 0, 0, 1.0])))
+        static.append((tp.base_frame, GNSS_FRAME, np.zeros(3), np.array([0, 0, 0, 1.0])))
+        out: list = []
+        self._msg(out, tp.tf_static, "tf2_msgs/msg/TFMessage", t0, lambda f: f.tf_message([f.transform_stamped(t0, *s) for s in static]))
+        return out
+
+    def _view(self, k: int) -> sensors.LidarView:
+        origin = self.world.poses.pos[k] + np.array([0.0, 0.0, self.cfg.synth.lidar_height_m])
+        return sensors.lidar_view(self.cfg.synth, self.world.terrain, origin)
+
+    def tick(self, k: int) -> list:
+        """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
+        cfg, sc, tp, world = self.cfg, self.cfg.synth, self.cfg.topics, self.world
+        odom, poses = world.odom, world.poses
+        out: list = []
+        t = int(world.t_ns[k])
+        p_o, q_o = odom.p_odom[k], self.q_odom[k]
+        v_body = quat_to_matrix(q_o).T @ self.vel_odom[k]
+        w_body = np.array([0.0, 0.0, self.yaw_rate[k]])
+        self._msg(out, tp.odometry, "nav_msgs/msg/Odometry", t, lambda f: f.odometry(t, tp.odom_frame, tp.base_frame, p_o, q_o, v_body, w_body, k))
+        self._msg(out, tp.tf, "tf2_msgs/msg/TFMessage", t, lambda f: f.tf_message([f.transform_stamped(t, tp.odom_frame, tp.base_frame, p_o, q_o)]))
+
+        if k % self.gnss_p == 0:
+            g = k // self.gnss_p
+            e = self.gnss_err[g].copy()
+            rng = np.random.default_rng([sc.seed, 12, g])
+            if rng.random() < 0.01:  # occasional multipath outlier
+                e[:2] += rng.normal(0, 12.0, 2)
+            E, N = world.utm(poses.pos[k, :2]) + e[:2]
+            lon, lat = self.to_wgs84.transform(E, N)
+            alt = poses.pos[k, 2] + sc.geoid_offset_m + e[2]
+            s2 = self.gnss_sigma**2
+            cov = np.array([s2, s2, 2.25 * s2])
+            self._msg(out, tp.gnss, "sensor_msgs/msg/NavSatFix", t, lambda f: f.navsatfix(t, GNSS_FRAME, lat, lon, alt, cov, 0, g))
+
+        view = self._view(k) if (k % self.map_p == 0 or k % self.vox_p == 0) else None
+        if k % self.map_p == 0:
+            m = k // self.map_p
+            z_off = float(odom.p_odom[k, 2] - poses.pos[k, 2])
+            rng = np.random.default_rng([sc.seed, 10, k])
+            names = tp.layers
+            for rng_name in ("micro", "short"):
+                grid = cfg.grids.get(rng_name)
+                center = np.round(p_o[:2] / grid.resolution_m) * grid.resolution_m
+                cells = sensors.map_cells_world(grid, center, lambda pts: odom.odom_to_world(k, pts))
+                layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng)
+                start = (0, 0)
+                if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:
+                    start = tuple(int(x) for x in rng.integers(1, grid.size, 2))
+                named = {names.elevation: layers.elevation, names.risk: layers.risk, names.confidence: layers.confidence}
+                self._msg(
+                    out, tp.map_topic(rng_name), "grid_map_msgs/msg/GridMap", t + MAP_LATENCY_NS,
+                    lambda f: f.gridmap(t, tp.odom_frame, grid.resolution_m, center, named, start, m),
+                )
+
+        if k % self.vox_p == 0:
+            # the voxel map aggregates the last two lidar sweeps it was given, in odom
+            pts = [odom.world_to_odom(k, sensors.view_points(view))]
+            if k >= self.vox_p:
+                kp = k - self.vox_p
+                pts.append(odom.world_to_odom(kp, sensors.view_points(self._view(kp))))
+            allp = np.vstack(pts)
+            inside = np.all(np.abs(allp[:, :2] - p_o[:2]) < VOXEL_HALF_M, axis=1)
+            vx = sensors.voxelize(allp[inside], VOXEL_M)
+            self._msg(out, tp.voxel_map, "sensor_msgs/msg/PointCloud2", t, lambda f: f.pointcloud_xyz(t, tp.odom_frame, vx, k // self.vox_p))
+
+        if k % self.cam_p == 0:
+            from PIL import Image
+
+            T_wb = make_transform(quat_to_matrix(self.q_true[k]), poses.pos[k])
+            for c, topics in tp.cameras.items():
+                img = sensors.render(sc, self.raster, T_wb @ self.T_base_cam[c], self.K)
+                buf = io.BytesIO()
+                Image.fromarray(img).save(buf, format="JPEG", quality=90)
+                jpeg = buf.getvalue()
+                frame = camera_frame(c)
+                seq = k // self.cam_p
+                self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f: f.compressed_image(t, frame, jpeg, seq))
+                self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
+        return out
+
+
+_TICKER: _Ticker | None = None
+
+
+def _tick_chunk(ks: range) -> list:
+    assert _TICKER is not None
+    return [m for k in ks for m in _TICKER.tick(k)]
+
+
+def _simulate(cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster, sinks: _Sinks) -> None:
+    global _TICKER
+    ticker = _Ticker(cfg, world, raster, cfg.synth.formats)
+    for topic, msgtype, t_rec, blobs in ticker.static_messages():
+        sinks.write_raw(topic, msgtype, t_rec, blobs)
+    chunk = 5
+    chunks = [range(i, min(i + chunk, ticker.n)) for i in range(0, ticker.n, chunk)]
+    workers = min(cfg.synth.workers, len(chunks))
+    if workers <= 1:
+        _TICKER = ticker
+        results = map(_tick_chunk, chunks)
+        pool = None
+    else:
+        import multiprocessing as mp
+
+        _TICKER = ticker  # inherited by the forked workers
+        pool = mp.get_context("fork").Pool(workers)
+        results = pool.imap(_tick_chunk, chunks)
+    try:
+        for msgs in track(results, "synth: simulating drive", total=len(chunks)):
+            for topic, msgtype, t_rec, blobs in msgs:
+                sinks.write_raw(topic, msgtype, t_rec, blobs)
+    finally:
+        _TICKER = None
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+
+
+def _write_truth(cfg: GtgenConfig, world: SynthWorld, folder: Path) -> None:
+    folder.mkdir()
+    meta = {
+        "what": "gtgen synthetic drive truth; SynthWorld(synth config) rebuilds terrain, obstacles and poses",
+        "synth": cfg.synth.model_dump(mode="json"),
+        "crs": cfg.synth.crs,
+        "origin_e_m": cfg.synth.origin_e_m,
+        "origin_n_m": cfg.synth.origin_n_m,
+        "geoid_offset_m": cfg.synth.geoid_offset_m,
+        "t0_ns": int(world.t_ns[0]),
+        "distance_m": float(world.path.dist[-1]),
+    }
+    (folder / "truth.json").write_text(json.dumps(meta, indent=2, sort_keys=True))
+    buf = io.BytesIO()
+    np.savez(
+        buf,
+        t_ns=world.t_ns,
+        pos_world_m=world.poses.pos,
+        rpy_world_rad=world.poses.rpy,
+        pos_odom_m=world.odom.p_odom,
+        rpy_odom_rad=world.odom.rpy_odom,
+    )
+    (folder / "trajectory.npz").write_bytes(buf.getvalue())
+
+
+def load_world(out: Path) -> SynthWorld:
+    """Return the SynthWorld of a synth output folder (from ``truth/truth.json``)."""
+    from gtgen.config import SynthConfig
+
+    meta_path = out / "truth" / "truth.json"
+    if not meta_path.is_file():
+        raise GtgenError(f"'{out}' holds no synth truth (expected {meta_path})")
+    meta = json.loads(meta_path.read_text())
+    return SynthWorld(SynthConfig.model_validate(meta["synth"]))

@@ -1,0 +1,249 @@
+"""Simulated sensors: a lidar's view of the ground, X-Racer maps, voxel map, cameras.
+
+The lidar model is a horizon test on a polar grid around the sensor: a sample is seen
+when its elevation angle is at least the largest angle of every nearer sample on the
+same azimuth (occlusion by terrain and tree crowns), within the vertical field of view
+and the maximum range. Everything is vectorised over samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.config import GridSpec, SynthConfig
+from gtgen.geometry import rpy_to_quat, quat_to_matrix
+from gtgen.synth.terrain import Terrain
+
+N_AZ = 720
+RANGE_STEP_M = 0.25
+MIN_ELEV_ANGLE = np.tan(np.deg2rad(-25.0))
+
+
+@dataclass
+class LidarView:
+    """What the lidar sees from one pose: polar samples (N_AZ, N_R) in the world frame."""
+
+    origin: NDArray[np.float64]  # (3,) sensor position [m], world
+    ranges: NDArray[np.float64]  # (N_R,)
+    az: NDArray[np.float64]  # (N_AZ,)
+    ground: NDArray[np.float32]  # ground height of each sample [m]
+    surface: NDArray[np.float32]  # surface height (with crowns) [m]
+    seen_surface: NDArray[np.bool_]  # the surface at the sample is hit by a beam
+    seen_ground: NDArray[np.bool_]  # the ground itself is hit (not a crown)
+    held_ground: NDArray[np.float32]  # last seen ground height along the ray (NaN before any)
+
+
+def lidar_view(cfg: SynthConfig, terrain: Terrain, origin: NDArray) -> LidarView:
+    """Return the polar visibility of the terrain from a lidar at world ``origin``."""
+    ranges = np.arange(1.0, cfg.lidar_range_m + 1e-9, RANGE_STEP_M)
+    az = np.arange(N_AZ) * (2 * np.pi / N_AZ)
+    U = origin[0] + np.cos(az)[:, None] * ranges[None, :]
+    V = origin[1] + np.sin(az)[:, None] * ranges[None, :]
+    ground, surface = terrain.sample(U, V, ("ground", "surface"))
+    ang_s = (surface - origin[2]) / ranges
+    ang_g = (ground - origin[2]) / ranges
+    prior = np.maximum.accumulate(ang_s, axis=1)
+    prior = np.concatenate([np.full((N_AZ, 1), -np.inf, np.float32), prior[:, :-1]], axis=1)
+    in_fov = ang_s >= MIN_ELEV_ANGLE
+    seen_surface = (ang_s >= prior - 1e-4) & in_fov
+    crown = surface - ground > 0.3
+    seen_ground = seen_surface & ~crown
+    # naive extrapolation: hold the last ground height seen along each ray
+    idx = np.where(seen_ground, np.arange(len(ranges))[None, :], -1)
+    idx = np.maximum.accumulate(idx, axis=1)
+    held = np.take_along_axis(ground, np.maximum(idx, 0), axis=1)
+    held = np.where(idx >= 0, held, np.nan).astype(np.float32)
+    return LidarView(origin, ranges, az, ground, surface, seen_surface, seen_ground, held)
+
+
+def polar_lookup(view: LidarView, u: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Return (azimuth index, range index, range [m]) of world points; range index -1 outside."""
+    du = u - view.origin[0]
+    dv = v - view.origin[1]
+    r = np.hypot(du, dv)
+    ai = np.round(np.arctan2(dv, du) / (2 * np.pi / N_AZ)).astype(np.int64) % N_AZ
+    ri = np.round((r - view.ranges[0]) / RANGE_STEP_M).astype(np.int64)
+    ri = np.where((ri < 0) | (ri >= len(view.ranges)), -1, ri)
+    return ai, ri, r
+
+
+@dataclass
+class MapLayers:
+    """One X-Racer map in its own grid: (size, size) arrays, axis 0 = x, axis 1 = y."""
+
+    elevation: NDArray[np.float32]
+    risk: NDArray[np.float32]
+    confidence: NDArray[np.float32]
+
+
+def xracer_map(
+    cfg: SynthConfig,
+    terrain: Terrain,
+    view: LidarView,
+    cell_world_uv: tuple[NDArray, NDArray],
+    z_world_to_map: float,
+    rng: np.random.Generator,
+) -> MapLayers:
+    """Return the simulated X-Racer layers at cells whose world positions are given.
+
+    Elevations are mapped to the map frame by adding ``z_world_to_map`` (the odometry's
+    z offset), so odometry z drift appears in the published map as on a real robot.
+    """
+    u, v = cell_world_uv
+    ground, risk = terrain.sample(u, v, ("ground", "risk"))
+    ai, ri, r = polar_lookup(view, u, v)
+    ok = ri >= 0
+    rr = np.maximum(ri, 0)
+    seen_s = ok & view.seen_surface[ai, rr]
+    seen_g = ok & view.seen_ground[ai, rr]
+    held = np.where(ok, view.held_ground[ai, rr], np.nan)
+    noise_sd = cfg.elevation_noise_m + cfg.elevation_noise_per_m * r
+    elev = np.where(seen_g | seen_s, ground + rng.standard_normal(u.shape).astype(np.float32) * noise_sd, held)
+    conf = np.where(seen_s, 0.5 ** (r / cfg.confidence_range_m), 0.0)
+    conf = np.clip(conf * (1 + 0.05 * rng.standard_normal(u.shape)), 0, 1)
+    conf = np.where(seen_s, np.maximum(conf, 0.12), conf)
+    risk_obs = np.clip(risk + 0.03 * rng.standard_normal(u.shape), 0, 1)
+    risk_out = np.where(seen_s, risk_obs, 0.0)
+    nan = np.isnan(elev)
+    return MapLayers(
+        elevation=(elev + z_world_to_map).astype(np.float32),
+        risk=np.where(nan, np.nan, risk_out).astype(np.float32),
+        confidence=np.where(nan, 0.0, conf).astype(np.float32),
+    )
+
+
+def map_cells_world(grid: GridSpec, center_odom_xy: NDArray, odom_to_world) -> tuple[NDArray, NDArray]:
+    """Return world (u, v) of the cells of an odom-aligned grid centred at ``center_odom_xy``."""
+    c = -0.5 * grid.length_m + (np.arange(grid.size) + 0.5) * grid.resolution_m
+    X, Y = np.meshgrid(center_odom_xy[0] + c, center_odom_xy[1] + c, indexing="ij")
+    pts = np.stack([X, Y, np.zeros_like(X)], -1)
+    w = odom_to_world(pts)
+    return w[..., 0], w[..., 1]
+
+
+def voxelize(points: NDArray, voxel_m: float) -> NDArray[np.float32]:
+    """Return the centres of the occupied voxels of edge ``voxel_m`` (sorted, unique)."""
+    keys = np.floor(points / voxel_m).astype(np.int64) + (1 << 20)
+    if len(keys) and (keys.min() < 0 or keys.max() >= 1 << 21):
+        raise ValueError("voxelize: points farther than 400 km from the origin")
+    flat = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
+    keys = np.column_stack([flat >> 42, (flat >> 21) & ((1 << 21) - 1), flat & ((1 << 21) - 1)]) - (1 << 20)
+    return ((keys + 0.5) * voxel_m).astype(np.float32)
+
+
+def view_points(view: LidarView) -> NDArray[np.float64]:
+    """Return the world points (N, 3) the lidar hit in ``view``."""
+    a, k = np.nonzero(view.seen_surface)
+    r = view.ranges[k]
+    return np.column_stack([view.origin[0] + np.cos(view.az[a]) * r, view.origin[1] + np.sin(view.az[a]) * r, view.surface[a, k]])
+
+
+# -- cameras -----------------------------------------------------------------------
+CAMERA_MOUNTS = {
+    # name: (x, y, z) [m] in base_link, yaw [rad], pitch down [rad]
+    "front": ((1.2, 0.0, 1.7), 0.0, np.deg2rad(8.0)),
+    "left": ((0.3, 0.6, 1.7), np.pi / 2, np.deg2rad(8.0)),
+    "right": ((0.3, -0.6, 1.7), -np.pi / 2, np.deg2rad(8.0)),
+    "back": ((-1.0, 0.0, 1.7), np.pi, np.deg2rad(8.0)),
+}
+# optical frame (x right, y down, z forward) expressed in a forward-looking body frame
+R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+LIDAR_MOUNT = (0.0, 0.0, 2.0)
+
+
+def camera_extrinsic(name: str) -> NDArray[np.float64]:
+    """Return T_base_camoptical (4x4) of camera ``name``."""
+    (x, y, z), yaw, pitch = CAMERA_MOUNTS[name]
+    R = quat_to_matrix(rpy_to_quat(0.0, pitch, yaw)) @ R_BODY_OPTICAL
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def camera_intrinsic(cfg: SynthConfig) -> NDArray[np.float64]:
+    """Return the 3x3 pinhole matrix K of the simulated cameras."""
+    f = 0.5 * cfg.image_width / np.tan(np.deg2rad(cfg.camera_hfov_deg) / 2)
+    # ROS convention: pixel centres at integer coordinates
+    return np.array([[f, 0.0, (cfg.image_width - 1) / 2], [0.0, f, (cfg.image_height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+class RenderRaster:
+    """A coarse raster of the world for ray marching the camera images."""
+
+    RES_M = 0.25
+
+    def __init__(self, terrain: Terrain, bounds: tuple[float, float, float, float]) -> None:
+        u0, v0, u1, v1 = bounds
+        self.u0, self.v0 = u0, v0
+        nu = int(np.ceil((u1 - u0) / self.RES_M))
+        nv = int(np.ceil((v1 - v0) / self.RES_M))
+        self.layers = np.empty((3, nu, nv), np.float32)
+        block = 1024
+        for i in range(0, nu, block):
+            for j in range(0, nv, block):
+                bu, bv = min(block, nu - i), min(block, nv - j)
+                g = terrain.eval_grid(u0 + i * self.RES_M, v0 + j * self.RES_M, self.RES_M, bu, bv)
+                self.layers[0, i : i + bu, j : j + bv] = g["surface"]
+                self.layers[1, i : i + bu, j : j + bv] = g["ground"]
+                self.layers[2, i : i + bu, j : j + bv] = g["bare"]
+
+    def lookup(self, u: NDArray, v: NDArray, layer: int) -> NDArray[np.float32]:
+        """Return the nearest raster value of ``layer`` at (u, v) relative to (u0, v0); -inf outside."""
+        i = (u * (1 / self.RES_M)).astype(np.int32)
+        j = (v * (1 / self.RES_M)).astype(np.int32)
+        ok = (u >= 0) & (i < self.layers.shape[1]) & (v >= 0) & (j < self.layers.shape[2])
+        out = self.layers[layer, np.where(ok, i, 0), np.where(ok, j, 0)]
+        return np.where(ok, out, -np.inf)
+
+
+N_STEPS = 48
+DEPTHS = np.geomspace(0.8, 140.0, N_STEPS).astype(np.float32)
+
+
+def render(cfg: SynthConfig, raster: RenderRaster, T_world_cam: NDArray, K: NDArray) -> NDArray[np.uint8]:
+    """Return an RGB image (H, W, 3) rendered by marching each pixel's ray over the raster."""
+    H, W = cfg.image_height, cfg.image_width
+    px, py = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    rays = np.stack([(px - K[0, 2]) / K[0, 0], (py - K[1, 2]) / K[1, 1], np.ones_like(px)], -1).reshape(-1, 3)
+    rays = (rays @ T_world_cam[:3, :3].T).astype(np.float32)
+    # march in a frame centred on the raster origin so float32 keeps centimetres
+    o = (T_world_cam[:3, 3] - np.array([raster.u0, raster.v0, 0.0])).astype(np.float32)
+    d = DEPTHS[None, :, None] * rays[:, None, :]  # along the optical axis: z depth
+    P = o + d
+    surf = raster.lookup(P[..., 0], P[..., 1], 0)
+    below = P[..., 2] <= surf
+    hit = below.any(axis=1)
+    k = np.argmax(below, axis=1)
+    kp = np.maximum(k - 1, 0)
+    n = np.arange(len(rays))
+    # refine the hit between the last step above and the first below the surface
+    za, zb = P[n, kp, 2] - surf[n, kp], P[n, k, 2] - surf[n, k]
+    a = np.clip(za / np.where(za - zb == 0, 1, za - zb), 0, 1)
+    a = np.where(k == 0, 0.0, a)
+    hp = P[n, kp] + (P[n, k] - P[n, kp]) * a[:, None]
+    depth = DEPTHS[kp] + (DEPTHS[k] - DEPTHS[kp]) * a
+    s = raster.lookup(hp[:, 0], hp[:, 1], 0)
+    g = raster.lookup(hp[:, 0], hp[:, 1], 1)
+    b = raster.lookup(hp[:, 0], hp[:, 1], 2)
+    tree = (s - g) > 0.3
+    rock = (g - b) > 0.08
+    # procedural ground texture from world position: deterministic, no state
+    hu, hv = hp[:, 0] + raster.u0, hp[:, 1] + raster.v0
+    tex = 0.5 + 0.25 * np.sin(hu * 1.7) * np.sin(hv * 1.3) + 0.25 * np.sin((hu + hv) * 0.31)
+    ground_rgb = np.stack([150 + 40 * tex, 130 + 30 * tex, 85 + 20 * tex], -1)
+    height_tint = np.clip((g - 230.0) / 20.0, 0, 1)[:, None]
+    ground_rgb = ground_rgb * (1 - 0.25 * height_tint) + np.array([110, 140, 70]) * 0.25 * height_tint
+    rgb = np.where(rock[:, None], np.array([120.0, 120.0, 125.0]), ground_rgb)
+    trunk = tree & ((hp[:, 2] - g) < 0.45 * (s - g))
+    rgb = np.where(tree[:, None], np.where(trunk[:, None], np.array([90.0, 60.0, 35.0]), np.array([40.0, 110.0, 45.0])), rgb)
+    fog = np.clip(depth / 160.0, 0, 0.6)[:, None]
+    sky_rgb = np.array([170.0, 200.0, 235.0])
+    rgb = rgb * (1 - fog) + sky_rgb * fog
+    vert = np.clip(py.reshape(-1) / H, 0, 1)[:, None]
+    sky = np.array([110.0, 160.0, 230.0]) * (1 - vert) + sky_rgb * vert
+    rgb = np.where(hit[:, None], rgb, sky)
+    return np.clip(rgb, 0, 255).astype(np.uint8).reshape(H, W, 3)
