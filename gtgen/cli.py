@@ -153,6 +153,42 @@ def extract(
     _table("gtgen extract", rows)
 
 
+@app.command()
+def fuse(
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
+    window: Optional[float] = typer.Option(None, "--window", help="future window [s] [default from config: 60]"),
+    past: Optional[float] = typer.Option(None, "--past", help="past window [s] [default from config: 0]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="fused store [default: fused.zarr beside DRIVE]"),
+    workers: int = typer.Option(2, help="processes (one per range)"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Hindsight-fuse each sample's maps: elevation, confidence, risk, regions, X-Racer at t.
+
+    **Examples**
+
+        gtgen fuse --window 60                 # ./gtgen_ws/drive.zarr -> ./gtgen_ws/fused.zarr
+        gtgen fuse runs/a.zarr --window 30 --past 5
+    """
+    over: dict[str, Any] = {}
+    if window is not None:
+        if window <= 0:
+            raise GtgenError(f"--window {window} must be a positive number of seconds")
+        over["window_s"] = window
+    if past is not None:
+        if past < 0:
+            raise GtgenError(f"--past {past} must be zero or a positive number of seconds")
+        over["past_s"] = past
+    cfg = _load(config, {"fuse": over})
+    from gtgen.fuse.run import run_fuse
+
+    res = run_fuse(drive, out or drive.parent / "fused.zarr", cfg, workers=workers)
+    rows: list[tuple[str, Any]] = [("store", res.store), ("samples", res.n_samples), ("fused", res.n_fused)]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    for r, cov in res.coverage.items():
+        rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
+    _table("gtgen fuse", rows)
+
+
 def main() -> None:
     """Run the CLI; map gtgen errors to one line on stderr and exit code 1."""
     try:

@@ -278,8 +278,10 @@ def _select(cfg: GtgenConfig, track_: PoseTrack, scan: _Scan) -> _Plan:
         meta = scan.map_meta[f"map.{r}"]
         stamps = [m[0] if m[1] else -1 for m in meta]
         ms, mo = _sorted_valid(stamps)
-        mi, md = _nearest(ms, t)
-        mok = (mi >= 0) & (md <= int(ex.map_skew_s * 1e9))
+        # the X-Racer map at t is the latest one stamped <= t (what the robot had then)
+        mi = np.searchsorted(ms, t, side="right") - 1
+        mok = (mi >= 0) & (t - ms[np.maximum(mi, 0)] <= int(ex.map_skew_s * 1e9)) if len(ms) else np.zeros(len(t), bool)
+        mi = np.where(mok, mi, 0)
         reason[(reason == 0) & ~mok] = code
         map_near[r] = (ms, mo, mi)
     keep = reason == 0

@@ -1,0 +1,1 @@
+"""Hindsight fusion: X-Racer maps of a window fused into each sample's target grid."""

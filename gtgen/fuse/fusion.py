@@ -1,0 +1,263 @@
+"""Hindsight fusion of one range's maps into each sample's target grid.
+
+Semantics (SPEC section 4, 'fuse'), for a sample at t with current map m0 (the latest
+map stamped <= t) and window [a, b] = [min(t - past, t_m0), t + window]:
+
+- elevation: mean over maps in the window where the cell is finite and
+  confidence > min_conf, minus the base z at t;
+- confidence: max over maps in the window;
+- risk: the value of the latest map in the window with confidence >= risk_min_conf;
+- count, last observation: how many maps gave the elevation, and the latest one's stamp;
+- region: 1 where m0 is confident (> min_conf), else 2 where some map in the window
+  is, else 3 (unobserved; the DEM stage fills or zeroes these).
+
+Cost: ``fuse_range`` splats every map into odom-lattice accumulators a fixed number of
+times whatever the window: sums and counts slide (add at b, subtract past a), the
+latest risk and last-observation stamps are overwritten in time order and expire past
+a, and the max confidence uses the van Herk / Gil-Werman split of the window into a
+suffix of one block and a prefix of the next (blocks of the window's length). Each
+sample then gathers a handful of lattice fields. ``naive_fuse_range`` is the oracle.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.fuse.lattice import Atlas, LatticeMap, gather_map, target_lattice_index
+
+
+@dataclass(frozen=True)
+class FuseParams:
+    """Fusion settings in gtgen units (ns, confidence)."""
+
+    window_ns: int
+    past_ns: int = 0
+    min_conf: float = 0.1
+    risk_min_conf: float = 0.5
+    tile: int = 128
+
+
+@dataclass(frozen=True)
+class SampleGrid:
+    """A sample's target grid: time, base position (odom) and yaw, grid size and resolution."""
+
+    t_ns: int
+    pos: NDArray[np.float64]
+    yaw: float
+    current_map: int
+    size: int
+    res: float
+
+
+@dataclass
+class Fused:
+    """One sample's fused labels and its X-Racer map at t, all (size, size)."""
+
+    elevation: NDArray[np.float32]
+    confidence: NDArray[np.float32]
+    risk: NDArray[np.float32]
+    count: NDArray[np.uint16]
+    last_dt_s: NDArray[np.float32]
+    region: NDArray[np.uint8]
+    xr_elevation: NDArray[np.float32]
+    xr_risk: NDArray[np.float32]
+    xr_confidence: NDArray[np.float32]
+
+
+class MapSource:
+    """Maps of one range by index, sorted by stamp, loaded lazily with a small cache."""
+
+    def __init__(self, t_ns: NDArray[np.int64], load: Callable[[int], LatticeMap], cache: int = 6) -> None:
+        if len(t_ns) > 1 and np.any(np.diff(t_ns) < 0):
+            raise ValueError("map stamps must be sorted")
+        self.t_ns = np.asarray(t_ns, dtype=np.int64)
+        self._load = load
+        self._cache: OrderedDict[int, LatticeMap] = OrderedDict()
+        self._size = cache
+        self.loads = 0
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def __getitem__(self, i: int) -> LatticeMap:
+        m = self._cache.get(i)
+        if m is None:
+            m = self._load(i)
+            self.loads += 1
+            self._cache[i] = m
+            if len(self._cache) > self._size:
+                self._cache.popitem(last=False)
+        else:
+            self._cache.move_to_end(i)
+        return m
+
+    @classmethod
+    def from_list(cls, maps: list[LatticeMap]) -> MapSource:
+        maps = sorted(maps, key=lambda m: m.t_ns)
+        return cls(np.array([m.t_ns for m in maps], np.int64), lambda i: maps[i], cache=1)
+
+
+def window_bounds(s: SampleGrid, maps: MapSource, p: FuseParams) -> tuple[int, int]:
+    """Return the window [a, b] [ns] of sample ``s``."""
+    a = s.t_ns - p.past_ns
+    if 0 <= s.current_map < len(maps):
+        a = min(a, int(maps.t_ns[s.current_map]))
+    return a, s.t_ns + p.window_ns
+
+
+def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParams,
+            ssum: NDArray, cnt: NDArray, risk: NDArray, last: NDArray, cmax: NDArray) -> Fused:
+    z = s.pos[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        elev = np.where(cnt > 0, ssum / np.maximum(cnt, 1) - z, np.nan).astype(np.float32)
+    conf = np.where(np.isfinite(cmax), cmax, np.nan).astype(np.float32)
+    if 0 <= s.current_map < len(maps):
+        xe, xr, xc = gather_map(maps[s.current_map], I, J)
+    else:
+        xe = xr = xc = np.full(I.shape, np.nan)
+    cur = np.isfinite(xe) & (xc > p.min_conf)
+    region = np.where(cur, 1, np.where(cnt > 0, 2, 3)).astype(np.uint8)
+    last_dt = np.where(last >= 0, (last - s.t_ns) * 1e-9, np.nan).astype(np.float32)
+    return Fused(
+        elevation=elev, confidence=conf, risk=risk.astype(np.float32), count=np.minimum(cnt, 65535).astype(np.uint16),
+        last_dt_s=last_dt, region=region,
+        xr_elevation=(xe - z).astype(np.float32), xr_risk=xr.astype(np.float32), xr_confidence=xc.astype(np.float32),
+    )
+
+
+def naive_fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Iterator[tuple[int, Fused]]:
+    """Yield (index, Fused) per sample by re-fusing every map of its window: the oracle."""
+    for k, s in enumerate(samples):
+        a, b = window_bounds(s, maps, p)
+        I, J = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
+        ssum = np.zeros(I.shape)
+        cnt = np.zeros(I.shape, np.int64)
+        cmax = np.full(I.shape, -np.inf)
+        risk = np.full(I.shape, np.nan)
+        last = np.full(I.shape, -1, np.int64)
+        for i in np.nonzero((maps.t_ns >= a) & (maps.t_ns <= b))[0]:  # stamp order
+            e, r, c = gather_map(maps[int(i)], I, J)
+            obs = np.isfinite(e) & (c > p.min_conf)
+            ssum += np.where(obs, e, 0.0)
+            cnt += obs
+            cmax = np.fmax(cmax, np.where(np.isfinite(c), c, -np.inf))
+            robs = np.isfinite(r) & (c >= p.risk_min_conf)
+            risk = np.where(robs, r, risk)
+            last = np.where(obs, maps.t_ns[i], last)
+        yield k, _finish(s, I, J, maps, p, ssum, cnt, risk, last, cmax)
+
+
+_SLIDE = {"sum": ("float64", 0.0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1), "lstamp": ("int64", -1)}
+_MAX = {"max": ("float32", -np.inf)}
+
+
+class _Sliding:
+    """Sums and counts over a sliding window; latest risk / observation by overwrite + expiry.
+
+    Windows only move forward. A map is added when the window's end passes it (unless
+    it is already behind the window's start) and subtracted when the start passes it.
+    """
+
+    def __init__(self, maps: MapSource, p: FuseParams) -> None:
+        self.maps, self.p = maps, p
+        self.atlas = Atlas(p.tile, _SLIDE)
+        self.next_add = 0
+        self.added: list[int] = []  # added and not yet subtracted, in stamp order
+
+    def _splat(self, i: int, sign: int) -> None:
+        m = self.maps[i]
+        t = int(m.t_ns)
+        d = self.atlas.data
+        for slot, dst, src in self.atlas.windows(m.i0, m.j0, *m.shape, t, create=sign > 0):
+            e, c = m.elevation[src], m.confidence[src]
+            obs = np.isfinite(e) & (c > self.p.min_conf)
+            d["sum"][slot][dst] += sign * np.where(obs, e, 0.0)
+            d["cnt"][slot][dst] += sign * obs
+            if sign > 0:
+                r = m.risk[src]
+                robs = np.isfinite(r) & (c >= self.p.risk_min_conf)
+                d["risk"][slot][dst] = np.where(robs, r, d["risk"][slot][dst])
+                d["rstamp"][slot][dst] = np.where(robs, t, d["rstamp"][slot][dst])
+                d["lstamp"][slot][dst] = np.where(obs, t, d["lstamp"][slot][dst])
+
+    def advance(self, a: int, b: int) -> None:
+        """Move the window to [a, b] (both never decrease)."""
+        t = self.maps.t_ns
+        while self.next_add < len(t) and t[self.next_add] <= b:
+            if t[self.next_add] >= a:
+                self._splat(self.next_add, +1)
+                self.added.append(self.next_add)
+            self.next_add += 1
+        while self.added and t[self.added[0]] < a:
+            self._splat(self.added.pop(0), -1)
+        self.atlas.release_older_than(a)
+
+    def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        ssum, cnt, risk, rstamp, lstamp = self.atlas.gather(I, J, ("sum", "cnt", "risk", "rstamp", "lstamp"))
+        risk = np.where(rstamp >= a, risk, np.nan)
+        lstamp = np.where(lstamp >= a, lstamp, -1)
+        return ssum, cnt, risk, lstamp
+
+
+def _max_splat(atlas: Atlas, m: LatticeMap) -> None:
+    for slot, dst, src in atlas.windows(m.i0, m.j0, *m.shape, int(m.t_ns)):
+        d = atlas.data["max"]  # looked up per tile: allocating a tile may grow the array
+        c = m.confidence[src]
+        d[slot][dst] = np.fmax(d[slot][dst], np.where(np.isfinite(c), c, -np.inf))
+
+
+def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Iterator[tuple[int, Fused]]:
+    """Yield (index, Fused) per sample, in time order, equal to ``naive_fuse_range``."""
+    if not samples:
+        return
+    order = sorted(range(len(samples)), key=lambda k: samples[k].t_ns)
+    bounds = {k: window_bounds(samples[k], maps, p) for k in order}
+    if any(bounds[order[i]][0] > bounds[order[i + 1]][0] for i in range(len(order) - 1)):
+        raise ValueError("window starts must not decrease with sample time: each sample's current map must be the latest map stamped <= t")
+    # blocks as long as the shortest window: every window [a, b] is then the suffix
+    # [a, end of a's block) plus the prefix [end of a's block, b]
+    L = max(min(b - a for a, b in bounds.values()), 1)
+    t0 = bounds[order[0]][0]
+    t = maps.t_ns
+    sliding = _Sliding(maps, p)
+    g_start = 0
+    while g_start < len(order):
+        kblk = (bounds[order[g_start]][0] - t0) // L
+        g_end = g_start
+        while g_end < len(order) and (bounds[order[g_end]][0] - t0) // L == kblk:
+            g_end += 1
+        group = order[g_start:g_end]
+        lo, mid = t0 + kblk * L, t0 + (kblk + 1) * L
+        # suffix maxima within the block, from its end backwards
+        atlas = Atlas(p.tile, _MAX)
+        in_blk = np.nonzero((t >= lo) & (t < mid))[0][::-1]
+        pos = 0
+        suffix: dict[int, NDArray] = {}
+        grids: dict[int, tuple[NDArray, NDArray]] = {}
+        for k in sorted(group, key=lambda k: -bounds[k][0]):
+            while pos < len(in_blk) and t[in_blk[pos]] >= bounds[k][0]:
+                _max_splat(atlas, maps[int(in_blk[pos])])
+                pos += 1
+            s = samples[k]
+            grids[k] = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
+            suffix[k] = atlas.gather(*grids[k], ("max",))[0]
+        # prefix maxima after the block, forwards; samples leave in time order (= b order)
+        atlas = Atlas(p.tile, _MAX)
+        nxt = np.nonzero(t >= mid)[0]
+        pos = 0
+        for k in group:
+            a, b = bounds[k]
+            while pos < len(nxt) and t[nxt[pos]] <= b:
+                _max_splat(atlas, maps[int(nxt[pos])])
+                pos += 1
+            I, J = grids.pop(k)
+            cmax = np.fmax(suffix.pop(k), atlas.gather(I, J, ("max",))[0])
+            sliding.advance(a, b)
+            ssum, cnt, risk, last = sliding.gather(I, J, a)
+            yield k, _finish(samples[k], I, J, maps, p, ssum, cnt, risk, last, cmax)
+        g_start = g_end

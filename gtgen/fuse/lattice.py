@@ -1,0 +1,186 @@
+"""The odom lattice: maps resampled onto it, and a sparse tiled accumulator over it.
+
+Every range fuses on a lattice of square cells of the range's resolution ``r`` fixed
+in the odom frame: lattice cell (I, J) covers [I r, (I + 1) r) x [J r, (J + 1) r).
+A GridMap that moves by whole cells (as grid_map does) is already a window of this
+lattice, so resampling it is a copy; any other map is resampled by nearest neighbour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+ALIGN_TOL = 1e-6
+
+
+@dataclass
+class LatticeMap:
+    """A map as a window of the lattice: layers (nx, ny) starting at lattice cell (i0, j0)."""
+
+    t_ns: int
+    i0: int
+    j0: int
+    elevation: NDArray[np.float32]
+    risk: NDArray[np.float32]
+    confidence: NDArray[np.float32]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.elevation.shape
+
+
+def to_lattice(
+    t_ns: int,
+    layers: tuple[NDArray, NDArray, NDArray],
+    center: NDArray,
+    yaw: float,
+    map_res: float,
+    res: float,
+) -> LatticeMap:
+    """Return a map (elevation, risk, confidence in gtgen layout) on the lattice of ``res``."""
+    elev, risk, conf = layers
+    nx, ny = elev.shape
+    x0 = center[0] - 0.5 * nx * map_res
+    y0 = center[1] - 0.5 * ny * map_res
+    fi, fj = x0 / res, y0 / res
+    aligned = (
+        abs(np.sin(yaw)) < ALIGN_TOL and np.cos(yaw) > 0 and abs(map_res - res) < ALIGN_TOL * res
+        and abs(fi - round(fi)) < 1e-4 and abs(fj - round(fj)) < 1e-4
+    )
+    if aligned:
+        return LatticeMap(t_ns, int(round(fi)), int(round(fj)), elev, risk, conf)
+    # general case: gather the map cell under each lattice cell centre of the bounding box
+    c, s = np.cos(yaw), np.sin(yaw)
+    hx, hy = 0.5 * nx * map_res, 0.5 * ny * map_res
+    corners = np.array([[-hx, -hy], [hx, -hy], [-hx, hy], [hx, hy]]) @ np.array([[c, s], [-s, c]]) + center[:2]
+    i0 = int(np.floor(corners[:, 0].min() / res))
+    j0 = int(np.floor(corners[:, 1].min() / res))
+    i1 = int(np.floor(corners[:, 0].max() / res)) + 1
+    j1 = int(np.floor(corners[:, 1].max() / res)) + 1
+    X, Y = np.meshgrid((np.arange(i0, i1) + 0.5) * res - center[0], (np.arange(j0, j1) + 0.5) * res - center[1], indexing="ij")
+    lx = c * X + s * Y
+    ly = -s * X + c * Y
+    mi = np.floor((lx + hx) / map_res).astype(np.int64)
+    mj = np.floor((ly + hy) / map_res).astype(np.int64)
+    ok = (mi >= 0) & (mi < nx) & (mj >= 0) & (mj < ny)
+    mi, mj = np.where(ok, mi, 0), np.where(ok, mj, 0)
+    out = [np.where(ok, a[mi, mj], np.nan).astype(np.float32) for a in (elev, risk, conf)]
+    return LatticeMap(t_ns, i0, j0, *out)
+
+
+def target_lattice_index(size: int, grid_res: float, lattice_res: float, pos: NDArray, yaw: float) -> tuple[NDArray, NDArray]:
+    """Return lattice indices (I, J) (size, size) of the cell centres of a sample's target grid.
+
+    The target grid is vehicle-centric and gravity-aligned: centre at ``pos`` (odom),
+    x along ``yaw``; axis 0 is x, index 0 at -L/2 (SPEC section 3).
+    """
+    cc = -0.5 * size * grid_res + (np.arange(size) + 0.5) * grid_res
+    X, Y = np.meshgrid(cc, cc, indexing="ij")
+    c, s = np.cos(yaw), np.sin(yaw)
+    px = pos[0] + c * X - s * Y
+    py = pos[1] + s * X + c * Y
+    return np.floor(px / lattice_res).astype(np.int64), np.floor(py / lattice_res).astype(np.int64)
+
+
+def gather_map(m: LatticeMap, I: NDArray, J: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Return the map's (elevation, risk, confidence) at lattice cells (I, J); NaN outside."""
+    a, b = I - m.i0, J - m.j0
+    nx, ny = m.shape
+    ok = (a >= 0) & (a < nx) & (b >= 0) & (b < ny)
+    a, b = np.where(ok, a, 0), np.where(ok, b, 0)
+    return tuple(np.where(ok, arr[a, b], np.nan) for arr in (m.elevation, m.risk, m.confidence))  # type: ignore[return-value]
+
+
+class Atlas:
+    """Sparse accumulators on the lattice, stored as square tiles in slot arrays.
+
+    ``fields`` maps a name to (dtype, fill). Tiles are created on first write and can
+    be released; memory follows the area touched by the maps currently accumulated.
+    """
+
+    def __init__(self, tile: int, fields: dict[str, tuple[str, object]]) -> None:
+        self.tile = tile
+        self.fields = fields
+        self.slots: dict[tuple[int, int], int] = {}
+        self.free: list[int] = []
+        self.cap = 0
+        self.data: dict[str, NDArray] = {k: np.empty((0, tile, tile), dtype=dt) for k, (dt, _) in fields.items()}
+        self.touched: NDArray[np.int64] = np.empty(0, np.int64)
+
+    def _alloc(self, key: tuple[int, int], stamp: int) -> int:
+        if self.free:
+            slot = self.free.pop()
+        else:
+            if len(self.slots) >= self.cap:
+                new = max(16, 2 * self.cap)
+                for k, (dt, fill) in self.fields.items():
+                    grown = np.empty((new, self.tile, self.tile), dtype=dt)
+                    grown[: self.cap] = self.data[k]
+                    self.data[k] = grown
+                self.touched = np.concatenate([self.touched, np.zeros(new - self.cap, np.int64)])
+                self.free = list(range(new - 1, self.cap, -1))
+                slot = self.cap
+                self.cap = new
+            else:
+                slot = self.free.pop()
+        for k, (_, fill) in self.fields.items():
+            self.data[k][slot] = fill
+        self.slots[key] = slot
+        self.touched[slot] = stamp
+        return slot
+
+    def windows(self, i0: int, j0: int, nx: int, ny: int, stamp: int, create: bool = True):
+        """Yield (slot, tile slices, source slices) covering the lattice rectangle."""
+        T = self.tile
+        for ti in range(i0 // T, (i0 + nx - 1) // T + 1):
+            for tj in range(j0 // T, (j0 + ny - 1) // T + 1):
+                a0, a1 = max(i0, ti * T), min(i0 + nx, (ti + 1) * T)
+                b0, b1 = max(j0, tj * T), min(j0 + ny, (tj + 1) * T)
+                slot = self.slots.get((ti, tj))
+                if slot is None:
+                    if not create:
+                        continue
+                    slot = self._alloc((ti, tj), stamp)
+                self.touched[slot] = max(self.touched[slot], stamp)
+                yield slot, (slice(a0 - ti * T, a1 - ti * T), slice(b0 - tj * T, b1 - tj * T)), (slice(a0 - i0, a1 - i0), slice(b0 - j0, b1 - j0))
+
+    def gather(self, I: NDArray, J: NDArray, names: tuple[str, ...]) -> list[NDArray]:
+        """Return the named fields at lattice cells (I, J); cells of absent tiles get the fill."""
+        T = self.tile
+        ti, tj = I // T, J // T
+        ti0, tj0 = int(ti.min()), int(tj.min())
+        table = np.full((int(ti.max()) - ti0 + 1, int(tj.max()) - tj0 + 1), -1, np.int64)
+        for (a, b), slot in self.slots.items():
+            if 0 <= a - ti0 < table.shape[0] and 0 <= b - tj0 < table.shape[1]:
+                table[a - ti0, b - tj0] = slot
+        slot = table[ti - ti0, tj - tj0]
+        ok = slot >= 0
+        s = np.where(ok, slot, 0)
+        li, lj = I - ti * T, J - tj * T
+        out = []
+        for n in names:
+            fill = self.fields[n][1]
+            if self.cap == 0:
+                out.append(np.full(I.shape, fill, dtype=self.fields[n][0]))
+                continue
+            out.append(np.where(ok, self.data[n][s, li, lj], fill))
+        return out
+
+    def release_older_than(self, stamp: int) -> int:
+        """Release tiles last written before ``stamp``; return how many were released."""
+        old = [k for k, s in self.slots.items() if self.touched[s] < stamp]
+        for k in old:
+            self.free.append(self.slots.pop(k))
+        return len(old)
+
+    def clear(self) -> None:
+        """Release every tile."""
+        self.free.extend(self.slots.values())
+        self.slots.clear()
+
+    @property
+    def n_tiles(self) -> int:
+        return len(self.slots)
