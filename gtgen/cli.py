@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 import typer
 
 from gtgen import __version__
@@ -187,6 +188,88 @@ def fuse(
     for r, cov in res.coverage.items():
         rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
     _table("gtgen fuse", rows)
+
+
+@app.command("dem-align")
+def dem_align(
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
+    fused: Optional[Path] = typer.Option(None, "--fused", help="fused store [default: fused.zarr beside DRIVE]"),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Place the DEM by GNSS, refine per sample by ICP, reject misfits, inpaint, write shards.
+
+    **Examples**
+
+        gtgen dem-align                        # ./gtgen_ws/{drive,fused}.zarr -> ./gtgen_ws/dataset.zarr
+        gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
+    """
+    cfg = _load(config)
+    from gtgen.dem.run import run_dem_align
+
+    res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg)
+    f = np.asarray(res.fitness) if res.fitness else None
+    rows: list[tuple[str, Any]] = [
+        ("dataset", res.store),
+        ("samples in", res.n_in),
+        ("samples kept", res.n_kept),
+    ]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    rows += [(f"  split {k}", v) for k, v in res.split_counts.items()]
+    rows += [
+        ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
+        ("vertical offset odom->DEM", f"{res.dz_dem_m:+.2f} m"),
+        ("ellipsoid - DEM height (geoid)", f"{res.geoid_offset_m:+.2f} m"),
+    ]
+    if f is not None:
+        rows.append(("ICP fitness", f"median {np.median(f):.3f}, min {f.min():.3f}"))
+    _table("gtgen dem-align", rows)
+
+
+@app.command()
+def report(
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="folder for report.json and PNGs [default: report/ beside the dataset's workspace]"),
+) -> None:
+    """Print a dataset card (kept/rejected, coverage, ICP fitness) and write QA figures.
+
+    With synth truth beside the bags, also the label error per region and range and the
+    DEM alignment error.
+
+    **Examples**
+
+        gtgen report
+        gtgen report datasets/paso.zarr -o qa/
+    """
+    from gtgen.report import build_report
+
+    out = out or Path("report")
+    rep = build_report(dataset, out)
+    c = rep.card
+    rows: list[tuple[str, Any]] = [("dataset", c["dataset"]), ("samples kept", c["samples_kept"])]
+    rows += [(f"  rejected: {k}", v) for k, v in c["samples_rejected"].items()]
+    rows += [(f"  split {k}", v) for k, v in c["split"].items()]
+    for r, cov in c.get("coverage", {}).items():
+        rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
+    if c.get("icp_fitness"):
+        rows.append(("ICP fitness", ", ".join(f"{k} {v:.3f}" for k, v in c["icp_fitness"].items())))
+    a = c.get("alignment", {})
+    if a:
+        rows.append(("GNSS fit", f"rms {a['gnss_rms_m']:.2f} m, {a['gnss_outliers']} outliers; geoid offset {a['geoid_offset_m']:+.2f} m"))
+    t = rep.truth
+    if t:
+        for r in ("micro", "short"):
+            for reg in ("obs_pc", "obs_f", "unobs"):
+                e = t[r][reg]
+                rows.append((f"truth {r} {reg}", f"elev MAE {e['elevation_mae_m']} m, risk MSE {e['risk_mse']}, X-Racer MAE {e['xracer_elevation_mae_m']} m"))
+            fv = t[r]["fused_vs_single_map"]
+            rows.append((f"truth {r} fused vs single map", f"{fv['fused_mae_m']} m vs {fv['single_map_mae_m']} m on {fv['cells']} cells"))
+        d = t["dem_alignment"]
+        rows.append(("DEM alignment error", f"horizontal median {d['horizontal_at_vehicle_m'].get('median')} m (max {d['horizontal_at_vehicle_m'].get('max')}), "
+                                            f"at 50 m ahead median {d['horizontal_50m_ahead_m'].get('median')} m, vertical median {d['vertical_m'].get('median')} m (max {d['vertical_m'].get('max')})"))
+    rows.append(("figures", ", ".join(str(p) for p in rep.figures)))
+    _table("gtgen report", rows)
 
 
 def main() -> None:

@@ -1,0 +1,1 @@
+"""DEM placement (GNSS fit + ICP), fitness rejection, and inpainting of unobserved cells."""
