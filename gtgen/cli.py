@@ -272,6 +272,24 @@ def report(
     _table("gtgen report", rows)
 
 
+@app.command()
+def viz(
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
+    sample: int = typer.Option(0, "--sample", "-n", help="sample index"),
+    out: Path = typer.Option(Path("sample.png"), "-o", "--out", help="PNG to write"),
+) -> None:
+    """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
+
+    **Examples**
+
+        gtgen viz --sample 12 -o s12.png
+    """
+    from gtgen.viz import render_sample
+
+    p = render_sample(dataset, sample, out)
+    _table("gtgen viz", [("figure", p)])
+
+
 def main() -> None:
     """Run the CLI; map gtgen errors to one line on stderr and exit code 1."""
     try:

@@ -293,3 +293,33 @@ def load_config(path: Path | None = None, *overrides: dict[str, Any]) -> GtgenCo
 def save_config(cfg: GtgenConfig, path: Path) -> None:
     """Write the resolved ``cfg`` as YAML to ``path``."""
     path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+
+
+def default_yaml() -> str:
+    """Return the defaults as YAML with each field's description (and unit) as a comment."""
+    lines = ["# gtgen defaults: every key, its unit and meaning. A --config file overrides any subset.", ""]
+
+    def walk(model: type[BaseModel], value: BaseModel, indent: int) -> None:
+        pad = "  " * indent
+        for name, field in model.model_fields.items():
+            v = getattr(value, name)
+            desc = field.description or ""
+            if isinstance(v, BaseModel):
+                lines.append(f"{pad}{name}:" + (f"  # {desc}" if desc else ""))
+                walk(type(v), v, indent + 1)
+            elif isinstance(v, dict) and v and isinstance(next(iter(v.values())), BaseModel):
+                lines.append(f"{pad}{name}:" + (f"  # {desc}" if desc else ""))
+                for k, sub in v.items():
+                    lines.append(f"{pad}  {k}:")
+                    walk(type(sub), sub, indent + 2)
+            else:
+                dumped = yaml.safe_dump({name: v}, default_flow_style=True, width=1000).strip()[1:-1]
+                lines.append(f"{pad}{dumped}" + (f"  # {desc}" if desc else ""))
+
+    cfg = GtgenConfig()
+    for name, field in GtgenConfig.model_fields.items():
+        sub = getattr(cfg, name)
+        lines.append(f"{name}:  # {(type(sub).__doc__ or '').strip().splitlines()[0]}")
+        walk(type(sub), sub, 1)
+        lines.append("")
+    return "\n".join(lines)

@@ -8,12 +8,12 @@ OUT=${1:-demo}
 GT="$ROOT/.venv/bin/gtgen"
 rm -rf "$OUT" && mkdir -p "$OUT"
 cd "$OUT"
-"$GT" synth drive --duration 40 --format both --seed 7
+"$GT" synth drive --duration 40 --format mcap --seed 7
 "$GT" extract drive/drive.mcap
 "$GT" fuse --window 60
 "$GT" dem-align
 "$GT" report
 "$GT" viz --sample 5 -o sample5.png
-"$GT" train --preset tiny
-"$GT" eval --ckpt runs/latest/ckpt.pt
+
+
 echo "demo: outputs in $OUT/ (figures: $OUT/report/*.png, $OUT/sample5.png)"

@@ -98,6 +98,8 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise ConfigError(f"output '{out}' exists and is not empty; choose another OUT or pass --overwrite")
     parent = out.resolve().parent
+    if parent.exists() and not parent.is_dir():
+        raise ConfigError(f"cannot write OUT '{out}': '{parent}' is a file, not a folder")
     if not parent.exists():
         try:
             parent.mkdir(parents=True)
@@ -107,7 +109,10 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
         raise ConfigError(f"output folder '{parent}' is not writable")
     tmp = parent / f".{out.name}.partial"
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    try:
+        tmp.mkdir()
+    except OSError as err:
+        raise ConfigError(f"cannot write OUT '{out}': {err.strerror}") from err
     return tmp
 
 

@@ -200,7 +200,7 @@ class RenderRaster:
         return np.where(ok, out, -np.inf)
 
 
-N_STEPS = 48
+N_STEPS = 64
 DEPTHS = np.geomspace(0.8, 140.0, N_STEPS).astype(np.float32)
 
 

@@ -52,24 +52,26 @@ def place_obstacles(cfg: SynthConfig, bounds: tuple[float, float, float, float],
 
     rock_uv = draw(cfg.rocks_per_ha, 2.5)
     tree_uv = draw(cfg.trees_per_ha, 6.0)
-    # A few obstacles close beside the path make sure every drive sees some up close.
-    idx = rng.integers(0, len(path_uv), size=max(2, int(len(path_uv) * 1e-3)))
+    nr, nt = len(rock_uv), len(tree_uv)
+    # Planted trees close beside the path make sure every drive sees some up close;
+    # they are full-grown so that they are unmistakable in every sensor.
+    idx = rng.integers(0, len(path_uv), size=max(3, int(len(path_uv) * 1e-3)))
     side = rng.choice([-1.0, 1.0], size=len(idx))
     tangent = np.gradient(path_uv, axis=0)[idx]
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-12
-    near = path_uv[idx] + normal * (side * rng.uniform(8.0, 20.0, len(idx)))[:, None]
+    near = path_uv[idx] + normal * (side * rng.uniform(9.0, 16.0, len(idx)))[:, None]
     d, _ = path.query(near)
-    tree_uv = np.vstack([tree_uv, near[d > 6.0]])
-    nr, nt = len(rock_uv), len(tree_uv)
+    near = near[d > 6.0]
+    npl = len(near)
     return Obstacles(
         rock_uv=rock_uv,
         rock_radius=rng.uniform(0.3, 0.9, nr),
         rock_height=rng.uniform(0.3, 0.8, nr),
-        tree_uv=tree_uv,
-        trunk_radius=rng.uniform(0.15, 0.35, nt),
-        canopy_radius=rng.uniform(1.5, 3.5, nt),
-        tree_height=rng.uniform(5.0, 12.0, nt),
+        tree_uv=np.vstack([tree_uv, near]),
+        trunk_radius=np.concatenate([rng.uniform(0.15, 0.35, nt), rng.uniform(0.3, 0.4, npl)]),
+        canopy_radius=np.concatenate([rng.uniform(1.5, 3.5, nt), rng.uniform(2.5, 3.5, npl)]),
+        tree_height=np.concatenate([rng.uniform(5.0, 12.0, nt), rng.uniform(7.0, 10.0, npl)]),
     )
 
 

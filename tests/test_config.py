@@ -1,0 +1,51 @@
+from pathlib import Path
+
+import pytest
+import yaml
+
+from gtgen.config import GtgenConfig, build_config, configs_dir, default_yaml, load_config
+from gtgen.errors import ConfigError, InputNotFoundError
+
+
+def test_default_yaml_lists_every_key_and_matches_the_models():
+    text = (configs_dir() / "default.yaml").read_text()
+    assert text.strip() == default_yaml().strip(), "configs/default.yaml is stale: regenerate from gtgen.config.default_yaml()"
+    assert build_config(yaml.safe_load(text)) == GtgenConfig()
+
+
+def test_xracer_yaml_is_the_default_topic_mapping():
+    assert load_config(configs_dir() / "xracer.yaml") == GtgenConfig()
+
+
+def test_partial_override_keeps_other_defaults(tmp_path: Path):
+    p = tmp_path / "c.yaml"
+    p.write_text("fuse:\n  window_s: 30\n")
+    cfg = load_config(p)
+    assert cfg.fuse.window_s == 30
+    assert cfg.fuse.min_conf == 0.1
+    assert cfg.grids.micro.size == 500
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("fuse:\n  window_s: -1\n", "fuse.window_s"),
+        ("fuse:\n  windw_s: 3\n", "fuse.windw_s"),
+        ("grids:\n  micro:\n    resolution_m: 0\n", "grids.micro.resolution_m"),
+        ("synth:\n  speed_min_mps: 9\n  speed_max_mps: 5\n", "speed_max_mps"),
+        ("- a\n- b\n", "must hold a mapping"),
+        ("fuse: [unclosed\n", "not valid YAML"),
+    ],
+)
+def test_bad_config_is_one_clear_line(tmp_path: Path, text: str, needle: str):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    msg = str(exc.value)
+    assert needle in msg and "\n" not in msg
+
+
+def test_missing_config_file():
+    with pytest.raises(InputNotFoundError, match="does not exist"):
+        load_config(Path("/nonexistent/x.yaml"))

@@ -1,0 +1,56 @@
+"""Property tests of the transform and grid maths (Hypothesis)."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gtgen.geometry import (
+    apply, cell_centers, invert, make_transform, matrix_to_quat, quat_to_matrix, quat_to_yaw,
+    rpy_to_quat, slerp, xy_to_index, yaw_transform,
+)
+
+angles = st.floats(-np.pi, np.pi, allow_nan=False)
+
+
+@given(angles, st.floats(-1.4, 1.4), angles)
+def test_quaternion_roundtrip(roll, pitch, yaw):
+    q = rpy_to_quat(roll, pitch, yaw)
+    R = quat_to_matrix(q)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    q2 = matrix_to_quat(R)
+    assert min(np.abs(q - q2).max(), np.abs(q + q2).max()) < 1e-9
+    assert abs(np.angle(np.exp(1j * (quat_to_yaw(q) - yaw)))) < 1e-9
+
+
+@given(angles, st.floats(-1.4, 1.4), angles, st.lists(st.floats(-100, 100), min_size=3, max_size=3))
+def test_invert_is_inverse(roll, pitch, yaw, t):
+    T = make_transform(quat_to_matrix(rpy_to_quat(roll, pitch, yaw)), np.array(t))
+    np.testing.assert_allclose(T @ invert(T), np.eye(4), atol=1e-9)
+
+
+@given(angles, angles, st.floats(0, 1))
+def test_slerp_endpoints_and_unit_norm(y0, y1, a):
+    q0, q1 = rpy_to_quat(0, 0, y0)[None], rpy_to_quat(0, 0, y1)[None]
+    np.testing.assert_allclose(np.abs(np.sum(slerp(q0, q1, np.array([0.0])) * q0)), 1, atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.sum(slerp(q0, q1, np.array([1.0])) * q1)), 1, atol=1e-9)
+    assert abs(np.linalg.norm(slerp(q0, q1, np.array([a]))) - 1) < 1e-9
+
+
+@settings(max_examples=200)
+@given(st.integers(1, 600), st.sampled_from([0.1, 0.2, 0.8, 1.0]), st.data())
+def test_cell_centre_and_index_agree(size, res, data):
+    """SPEC section 3: cell (i, j) centre = (-L/2 + (i + .5) r, ...); index 0 at the most negative x."""
+    i = data.draw(st.integers(0, size - 1))
+    c = cell_centers(size, res)
+    assert abs(c[i] - (-size * res / 2 + (i + 0.5) * res)) < 1e-9
+    ii, jj = xy_to_index(np.array([c[i]]), np.array([c[0]]), size, res)
+    assert (ii[0], jj[0]) == (i, 0)
+    bad_i, _ = xy_to_index(np.array([size * res]), np.array([0.0]), size, res)
+    assert bad_i[0] == -1
+
+
+@given(angles, st.floats(-50, 50), st.floats(-50, 50))
+def test_yaw_transform_moves_points(yaw, x, y):
+    T = yaw_transform(x, y, 1.0, yaw)
+    p = apply(T, np.array([[1.0, 0.0, 0.0]]))[0]
+    np.testing.assert_allclose(p, [x + np.cos(yaw), y + np.sin(yaw), 1.0], atol=1e-9)

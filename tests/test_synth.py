@@ -1,0 +1,191 @@
+"""gtgen synth: determinism, readable bags, maps/cameras/DEM consistent with the truth."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import run_cli, small_config
+from gtgen.bag.gridmap import decode_gridmap
+from gtgen.bag.reader import BagSet
+from gtgen.synth import run_synth
+from gtgen.synth.run import load_world
+from gtgen.synth.sensors import camera_extrinsic, camera_intrinsic
+from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_same_bytes_other_seed_other_drive(tmp_path):
+    cfg = small_config(synth={"duration_s": 2.0, "workers": 2})
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    run_synth(cfg, a)
+    run_synth(small_config(synth={"duration_s": 2.0, "workers": 1}), b)  # worker count must not matter
+    run_synth(small_config(synth={"duration_s": 2.0, "seed": 1}), c)
+    fa, fb, fc = _files(a), _files(b), _files(c)
+    fa.pop("gtgen-config.yaml"), fb.pop("gtgen-config.yaml"), fc.pop("gtgen-config.yaml")
+    fa.pop("truth/truth.json"), fb.pop("truth/truth.json")  # records the worker count
+    assert fa.keys() == fb.keys() and all(fa[k] == fb[k] for k in fa)
+    assert fa["drive.mcap"] != fc["drive.mcap"]
+
+
+def test_bags_open_with_rosbags_and_mcap(drive_dir, cfg):
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    sc = cfg.synth
+    n_odom = int(round(sc.duration_s * sc.odom_rate_hz)) + 1
+    expect = {
+        "/xracer/odometry": n_odom,
+        "/tf": n_odom,
+        "/tf_static": 1,
+        "/gnss/fix": int(np.ceil(n_odom / (sc.odom_rate_hz / sc.gnss_rate_hz))),
+        "/xracer/map/micro": int(np.ceil(n_odom / (sc.odom_rate_hz / sc.map_rate_hz))),
+        "/xracer/map/short": int(np.ceil(n_odom / (sc.odom_rate_hz / sc.map_rate_hz))),
+        "/xracer/voxel_map": int(np.ceil(n_odom / (sc.odom_rate_hz / sc.voxel_rate_hz))),
+        "/cam_front/image/compressed": int(np.ceil(n_odom / (sc.odom_rate_hz / sc.camera_rate_hz))),
+    }
+    for bag in ("drive.mcap", "drive.bag"):
+        with AnyReader([drive_dir / bag]) as r:
+            counts = {c.topic: c.msgcount for c in r.connections}
+            types = {c.topic: c.msgtype for c in r.connections}
+            for topic, n in expect.items():
+                assert counts[topic] == n, (bag, topic)
+            assert types["/xracer/map/micro"] == "grid_map_msgs/msg/GridMap"
+            assert types["/gnss/fix"] == "sensor_msgs/msg/NavSatFix"
+            odom = [c for c in r.connections if c.topic == "/xracer/odometry"]
+            stamps = [t for _, t, _ in r.messages(connections=odom)]
+            assert np.allclose(np.diff(stamps), 1e9 / sc.odom_rate_hz, atol=2e6)
+    with (drive_dir / "drive.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        names = {s.name for s in summary.schemas.values()}
+        assert "grid_map_msgs/msg/GridMap" in names
+
+
+def test_confident_map_cells_match_truth_within_noise(drive_dir, cfg):
+    world = load_world(drive_dir)
+    odom_t = world.t_ns
+    checked = 0
+    with BagSet([drive_dir / "drive.bag"]) as bags:
+        for _, _, _, msg, _ in bags.messages(["/xracer/map/micro"]):
+            g = decode_gridmap(msg, ["elevation", "confidence"])
+            k = int(np.searchsorted(odom_t, g.stamp_ns))
+            n = g.shape[0]
+            c = -0.5 * n * g.resolution_m + (np.arange(n) + 0.5) * g.resolution_m
+            X, Y = np.meshgrid(g.center_m[0] + c, g.center_m[1] + c, indexing="ij")
+            w = world.odom.odom_to_world(k, np.stack([X, Y, np.zeros_like(X)], -1))
+            truth = world.terrain.sample(w[..., 0], w[..., 1], ("ground",))[0]
+            truth_odom = truth - world.poses.pos[k, 2] + world.odom.p_odom[k, 2]
+            near = (g.layers["confidence"] > 0.5) & np.isfinite(g.layers["elevation"])
+            err = g.layers["elevation"][near] - truth_odom[near]
+            assert near.sum() > 500
+            assert abs(np.median(err)) < 0.02
+            assert np.std(err) < 3 * (cfg.synth.elevation_noise_m + cfg.synth.elevation_noise_per_m * 20)
+            checked += 1
+            if checked == 3:  # includes a message with non-zero circular-buffer start indices
+                break
+
+
+def test_planted_trees_appear_where_the_camera_model_projects_them(drive_dir, cfg):
+    """Trees planted beside the path must be green where CameraInfo K and tf_static put them."""
+    from PIL import Image
+
+    world = load_world(drive_dir)
+    K = camera_intrinsic(cfg.synth)
+    ob = world.obstacles
+    topics = {f"/cam_{c}/image/compressed": camera_extrinsic(c) for c in ("front", "left", "right", "back")}
+    hits, checked = 0, 0
+    with BagSet([drive_dir / "drive.mcap"]) as bags:
+        for topic, _, _, msg, _ in bags.messages(list(topics)):
+            t = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            k = int(np.searchsorted(world.t_ns, t))
+            img = np.asarray(Image.open(io.BytesIO(bytes(msg.data))).convert("RGB")).astype(int)
+            T_wc = make_transform(quat_to_matrix(rpy_to_quat(*world.poses.rpy[k])), world.poses.pos[k]) @ topics[topic]
+            for (u, v), h, cr in zip(ob.tree_uv, ob.tree_height, ob.canopy_radius):
+                if cr < 2.0:  # the renderer marches in steps of ~7% of the range
+                    continue
+                ground = world.terrain.sample(np.array([u]), np.array([v]), ("ground",))[0][0]
+                p = np.linalg.inv(T_wc) @ np.array([u, v, ground + 0.78 * h, 1.0])
+                if not 4 < p[2] < 25:
+                    continue
+                px = K @ (p[:3] / p[2])
+                x, y = int(round(px[0])), int(round(px[1]))
+                if 2 <= x < img.shape[1] - 2 and 2 <= y < img.shape[0] - 2:
+                    patch = img[y - 1 : y + 2, x - 1 : x + 2].reshape(-1, 3)
+                    # crown green, maybe hazed toward the sky's blue; sky has B > G, ground R > G
+                    greenish = (patch[:, 1] > patch[:, 0] + 25) & (patch[:, 1] + 10 >= patch[:, 2])
+                    checked += 1
+                    hits += greenish.mean() >= 0.5
+    assert checked >= 3, "too few trees in view to check the camera geometry"
+    assert hits / checked >= 0.9, f"only {hits} of {checked} projected trees are green in the images"
+
+
+def test_dem_georeferencing_roundtrips_to_truth(drive_dir, cfg):
+    import rasterio
+    from pyproj import Transformer
+
+    world = load_world(drive_dir)
+    tiles = sorted((drive_dir / "dem").glob("*.tif"))
+    assert len(tiles) >= 2
+    fwd = Transformer.from_crs(cfg.synth.crs, "EPSG:4326", always_xy=True)
+    back = Transformer.from_crs("EPSG:4326", cfg.synth.crs, always_xy=True)
+    with rasterio.open(tiles[0]) as ds:
+        assert ds.crs.to_epsg() == 26910 and ds.nodata == -999999.0 and ds.res == (1.0, 1.0)
+        band = ds.read(1)
+        rows, cols = np.array([3, 100, 150]), np.array([7, 50, 190])
+        E, N = rasterio.transform.xy(ds.transform, rows, cols)  # pixel centres
+    lon, lat = fwd.transform(E, N)
+    E2, N2 = back.transform(lon, lat)
+    np.testing.assert_allclose(E2, E, atol=1e-6)
+    np.testing.assert_allclose(N2, N, atol=1e-6)
+    truth = world.terrain.sample(np.asarray(E) - cfg.synth.origin_e_m, np.asarray(N) - cfg.synth.origin_n_m, ("ground",))[0]
+    np.testing.assert_allclose(band[rows, cols], truth, atol=5 * cfg.synth.dem_noise_m)
+
+
+def test_a_dem_tile_border_crosses_the_drive(drive_dir, cfg):
+    import rasterio
+
+    world = load_world(drive_dir)
+    utm = world.utm(world.path.uv)
+    edges_e = set()
+    for p in (drive_dir / "dem").glob("*.tif"):
+        with rasterio.open(p) as ds:
+            edges_e.update([ds.bounds.left, ds.bounds.right])
+    inner = [e for e in edges_e if utm[:, 0].min() < e < utm[:, 0].max()]
+    edges_n = set()
+    for p in (drive_dir / "dem").glob("*.tif"):
+        with rasterio.open(p) as ds:
+            edges_n.update([ds.bounds.bottom, ds.bounds.top])
+    inner += [n for n in edges_n if utm[:, 1].min() < n < utm[:, 1].max()]
+    assert inner, "no tile border inside the drive's extent"
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--duration", "-3"], "--duration -3"),
+        (["--format", "zip"], "--format 'zip' unknown"),
+    ],
+)
+def test_bad_arguments_one_line_error(tmp_path, args, needle):
+    p = run_cli("synth", tmp_path / "o", *args)
+    assert p.returncode != 0
+    assert needle in p.stderr and len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr
+
+
+def test_unwritable_out(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    p = run_cli("synth", f / "sub", "--duration", "1")
+    assert p.returncode != 0 and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    (ro / "x").write_text("occupied")
+    p = run_cli("synth", ro, "--duration", "1")
+    assert p.returncode != 0 and "exists and is not empty" in p.stderr
