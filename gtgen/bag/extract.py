@@ -418,6 +418,11 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig) -> ExtractResult
             topics = bags.topics()
             roles = _roles(cfg, topics)
             scan = _scan(bags, cfg, roles)
+            for r in RANGES:
+                meta = scan.map_meta.get(f"map.{r}", [])
+                if not any(ok for _, ok in meta):
+                    st_ = scan.stats[cfg.topics.map_topic(r)]
+                    raise DecodeError(f"{st_.topic}: none of its {st_.count} GridMaps is usable: {st_.first_error or 'no message'}")
             track_, warnings = _poses(cfg, scan)
             plan = _select(cfg, track_, scan)
             if len(plan.t) == 0:

@@ -1,0 +1,37 @@
+"""Make tiny bags for tests: rewrite a drive's MCAP with edits, through rosbags' own writer."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from rosbags.rosbag2 import Reader, Writer
+from rosbags.rosbag2.enums import StoragePlugin
+
+from gtgen.bag.msgdefs import typestore
+
+Edit = Callable[[str, int, object], Iterable[tuple[int, object]]]
+
+
+def rewrite_mcap(src: Path, dst: Path, edit: Edit) -> Path:
+    """Write ``dst`` (bare .mcap) with every message of ``src`` passed through ``edit``.
+
+    ``edit(topic, record_time, msg)`` yields (record_time, msg) pairs: none drops the
+    message, several duplicate it.
+    """
+    store = typestore(False)
+    tmp = dst.parent / (dst.stem + "_rosbag2")
+    shutil.rmtree(tmp, ignore_errors=True)
+    with Reader(src) as r, Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {}
+        for c in r.connections:
+            conns[c.id] = w.add_connection(c.topic, c.msgtype, typestore=store)
+        for c, t, raw in r.messages():
+            msg = store.deserialize_cdr(raw, c.msgtype)
+            for t2, m2 in edit(c.topic, t, msg):
+                w.write(conns[c.id], t2, store.serialize_cdr(m2, c.msgtype))
+    mcap = next(tmp.glob("*.mcap"))
+    mcap.rename(dst)
+    shutil.rmtree(tmp)
+    return dst

@@ -1,0 +1,254 @@
+"""gtgen extract: every bag flavour, real recordings, and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from bagtools import rewrite_mcap
+from conftest import REALDATA, SMALL, needs_realdata, run_cli, small_config
+from gtgen.bag.extract import run_extract
+from gtgen.bag.gridmap import decode_gridmap
+from gtgen.bag.reader import BagSet
+from gtgen.bag.store import open_drive, partial_path
+from gtgen.errors import BagError, DecodeError, GtgenError, InputNotFoundError, StoreError, TopicError
+
+
+# -- real recordings ----------------------------------------------------------------------
+@needs_realdata()
+def test_real_gridmap_decodes_with_header_in_info():
+    with BagSet([REALDATA / "anybotics_grid_map_demo.bag"]) as b:
+        (_, _, t_rec, msg, err), = list(b.messages(["/grid_map"]))
+    g = decode_gridmap(msg)
+    assert err is None and g.frame_id == "map" and g.shape == (40, 120)
+    assert int(np.isfinite(g.layers["elevation"]).sum()) == 906 and g.layers["elevation"].size == 4800
+    assert 2016 == 1970 + g.stamp_ns // (365.2425 * 86400 * 10**9)  # header stamp in 2016
+    assert t_rec > 4 * 10**18  # record time in 2100: header stamps are the data time
+
+
+@needs_realdata()
+def test_real_gridmap_layout_matches_grid_map_convention():
+    """grid_map index (0, 0) is the +x/+y corner: after decoding, the finite cells of the
+    demo map must sit on the same side as in grid_map's own column-major buffer."""
+    with BagSet([REALDATA / "anybotics_grid_map_demo.bag"]) as b:
+        (_, _, _, msg, _), = list(b.messages(["/grid_map"]))
+    raw = np.asarray(msg.data[0].data).reshape((40, 120), order="F")
+    g = decode_gridmap(msg)
+    np.testing.assert_array_equal(np.isfinite(g.layers["elevation"]), np.isfinite(raw[::-1, ::-1]))
+
+
+@needs_realdata()
+def test_real_gnss_track_decodes():
+    with BagSet([REALDATA / "robot_localization_test1.bag"]) as b:
+        fixes = [m for _, _, _, m, _ in b.messages(["/fix"])]
+    assert len(fixes) == 989
+    lat = np.array([f.latitude for f in fixes])
+    lon = np.array([f.longitude for f in fixes])
+    assert 42.3 < lat.mean() < 42.4 and -71.25 < lon.mean() < -71.1  # Watertown, MA
+    assert fixes[0].header.frame_id == "/gps" and np.isfinite([f.altitude for f in fixes]).all()
+
+
+@needs_realdata()
+def test_real_camera_info_ros1_field_names():
+    with BagSet([REALDATA / "ubiquity_fiducials_aruco_images.bag"]) as b:
+        infos = [m for t, _, _, m, _ in b.messages([t for t, i in b.topics().items() if i.msgtype.endswith("CameraInfo")])]
+    assert len(infos) == 15
+    ci = infos[0]
+    assert (ci.width, ci.height, ci.distortion_model) == (1280, 960, "plumb_bob")
+    K = np.asarray(ci.K).reshape(3, 3)
+    assert K[0, 0] > 100 and K[2, 2] == 1 and len(ci.D) >= 4 and len(ci.P) == 12 and len(ci.R) == 9
+
+
+@needs_realdata()
+def test_real_empty_gridmap_is_reported_not_crashed(tmp_path):
+    with BagSet([REALDATA / "anybotics_grid_map_ros_test_multitopic"]) as b:
+        (_, _, _, msg, _), = list(b.messages(["/grid_map"]))
+    with pytest.raises(DecodeError, match=r"GridMap has layers \[\]"):
+        decode_gridmap(msg, ["elevation"])
+    p = run_cli("extract", REALDATA / "anybotics_grid_map_ros_test_multitopic", "-o", tmp_path / "d.zarr")
+    assert p.returncode == 1 and "role 'map.micro'" in p.stderr and "Traceback" not in p.stderr
+    assert "['/grid_map']" in p.stderr  # names the GridMap topic the bag does have
+
+
+# -- synthetic drives ------------------------------------------------------------------------
+def test_extract_store_contents(drive_store, cfg):
+    g = open_drive(drive_store)
+    S = g["samples/t_ns"].shape[0]
+    assert S > 10
+    assert g["samples/images"].shape == (S, 4, 30, 48, 3)
+    off = g["samples/voxel_offsets"][:]
+    assert off[0] == 0 and np.all(np.diff(off) > 0) and off[-1] == g["voxel_points_odom_m"].shape[0]
+    d = g["samples/distance_m"][:]
+    assert np.all(np.diff(d) > 0.5 * cfg.extract.stride_m)
+    # intrinsics rescaled from 64 x 40 to 48 x 30
+    K = g["calib/K"][0]
+    assert abs(K[0, 2] - ((31.5 + 0.5) * 0.75 - 0.5)) < 1e-9
+    rep = g.attrs["report"]
+    assert rep["n_samples"] == S and {t["role"] for t in rep["topics"]} >= {"map.micro", "odometry", "gnss"}
+    for r in ("micro", "short"):
+        t = g[f"maps/{r}/t_ns"][:]
+        assert np.all(np.diff(t) > 0)
+        cur = g[f"samples/map_index_{r}"][:]
+        ts = g["samples/t_ns"][:]
+        assert np.all(t[cur] <= ts) and np.all(ts - t[cur] <= cfg.extract.map_skew_s * 1e9)
+
+
+def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp_path):
+    out = tmp_path / "from_bag.zarr"
+    run_extract([drive_dir / "drive.bag"], out, cfg)
+    a, b = open_drive(drive_store), open_drive(out)
+    for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_points_odom_m", "calib/T_base_cam"):
+        np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
+    np.testing.assert_array_equal(a["maps/micro/elevation_m"][3], b["maps/micro/elevation_m"][3])
+    np.testing.assert_array_equal(a["samples/images"][2], b["samples/images"][2])
+
+
+def test_circular_buffer_maps_decode_to_the_same_grid(drive_dir):
+    """Maps published with non-zero start indices land on the odom lattice like the others."""
+    seen = set()
+    with BagSet([drive_dir / "drive.mcap"]) as b:
+        prev = None
+        for _, _, _, msg, _ in b.messages(["/xracer/map/short"]):
+            g = decode_gridmap(msg, ["elevation", "confidence"])
+            shifted = bool(msg.outer_start_index or msg.inner_start_index)
+            seen.add(shifted)
+            if prev is not None:
+                # consecutive maps overlap: the same odom cell has nearly the same height
+                d = np.round((g.center_m - prev.center_m)[:2] / g.resolution_m).astype(int)
+                a = prev.layers["elevation"][max(d[0], 0):, max(d[1], 0):]
+                bb = g.layers["elevation"][max(-d[0], 0):, max(-d[1], 0):]
+                n = min(a.shape[0], bb.shape[0]), min(a.shape[1], bb.shape[1])
+                ca = prev.layers["confidence"][max(d[0], 0):, max(d[1], 0):][: n[0], : n[1]]
+                cb = g.layers["confidence"][max(-d[0], 0):, max(-d[1], 0):][: n[0], : n[1]]
+                both = (ca > 0.5) & (cb > 0.5)
+                assert np.median(np.abs(a[: n[0], : n[1]][both] - bb[: n[0], : n[1]][both])) < 0.1
+            prev = g
+    assert seen == {True, False}
+
+
+# -- bad input ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("make, err, needle", [
+    (lambda d, t: t / "missing.mcap", InputNotFoundError, "does not exist"),
+    (lambda d, t: _zero(t / "empty.mcap"), BagError, "empty (0 bytes)"),
+    (lambda d, t: _truncate(d / "drive.mcap", t / "cut.mcap"), BagError, "truncated or corrupt"),
+    (lambda d, t: _truncate(d / "drive.bag", t / "cut.bag"), BagError, "cut.bag"),
+    (lambda d, t: _zero(t / "x.txt"), BagError, "suffix '.txt'"),
+])
+def test_bad_bags_raise_clear_errors(drive_dir, tmp_path, cfg, make, err, needle):
+    path = make(drive_dir, tmp_path)
+    out = tmp_path / "d.zarr"
+    with pytest.raises(err, match=needle.replace("(", r"\(").replace(")", r"\)")) as exc:
+        run_extract([path], out, cfg)
+    assert "\n" not in str(exc.value)
+    assert not out.exists() and not partial_path(out).exists()
+
+
+def _zero(p):
+    p.write_bytes(b"")
+    return p
+
+
+def _truncate(src, dst):
+    data = src.read_bytes()
+    dst.write_bytes(data[: int(len(data) * 0.4)])
+    return dst
+
+
+def test_missing_topic_names_role_and_candidates(drive_dir, tmp_path):
+    cfg = small_config(topics={"map_micro": "/elevation_mapping/map"})
+    with pytest.raises(TopicError) as exc:
+        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg)
+    msg = str(exc.value)
+    assert "role 'map.micro'" in msg and "/elevation_mapping/map" in msg and "/xracer/map/micro" in msg
+
+
+def test_unknown_layer_names(drive_dir, tmp_path):
+    cfg = small_config(topics={"layers": {"elevation": "height"}})
+    with pytest.raises(GtgenError) as exc:
+        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg)
+    assert "height" in str(exc.value) and "elevation" in str(exc.value)
+    assert not (tmp_path / "d.zarr").exists()
+
+
+def test_out_of_order_and_duplicate_odometry(drive_dir, drive_store, cfg, tmp_path):
+    def edit(topic, t, msg):
+        if topic == "/xracer/odometry":
+            k = (msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) // 20_000_000
+            if k % 7 == 0:
+                yield t, msg
+                yield t, msg  # duplicate stamp
+                return
+            if k % 11 == 0:
+                yield t + 60_000_000, msg  # recorded late: out of order
+                return
+        yield t, msg
+
+    bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "messy.mcap", edit)
+    res = run_extract([bag], tmp_path / "m.zarr", cfg)
+    assert any("duplicate" in w for w in res.warnings)
+    a, b = open_drive(drive_store), open_drive(tmp_path / "m.zarr")
+    np.testing.assert_array_equal(a["poses/t_ns"][:], b["poses/t_ns"][:])
+    np.testing.assert_array_equal(a["samples/t_ns"][:], b["samples/t_ns"][:])
+
+
+def test_odometry_gap_rejects_samples_with_reason(drive_dir, cfg, tmp_path):
+    t0 = None
+
+    def edit(topic, t, msg):
+        nonlocal t0
+        t0 = t if t0 is None else t0
+        if topic == "/xracer/odometry" and 3e9 < t - t0 < 4.5e9:
+            return
+        yield t, msg
+
+    bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "gap.mcap", edit)
+    res = run_extract([bag], tmp_path / "g.zarr", cfg)
+    assert res.rejected.get("no_pose", 0) >= 1
+    assert any("gaps" in w for w in res.warnings)
+    g = open_drive(tmp_path / "g.zarr")
+    t = g["samples/t_ns"][:]
+    assert not np.any((t - t0 > 3.05e9) & (t - t0 < 4.45e9))
+
+
+def test_all_nan_maps_are_not_used(drive_dir, cfg, tmp_path):
+    count = {"n": 0}
+
+    def edit(topic, t, msg):
+        if topic == "/xracer/map/micro":
+            count["n"] += 1
+            if count["n"] % 2 == 0:
+                for arr in msg.data:
+                    arr.data = np.full_like(arr.data, np.nan)
+        yield t, msg
+
+    bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "nan.mcap", edit)
+    res = run_extract([bag], tmp_path / "n.zarr", cfg)
+    micro = next(s for s in res.topics if s["role"] == "map.micro")
+    assert "all-NaN" in micro["first_error"]
+    g = open_drive(tmp_path / "n.zarr")
+    conf = g["maps/micro/confidence"]
+    assert all(np.nanmax(conf[i]) > 0 for i in range(conf.shape[0]))
+
+
+def test_failed_extract_leaves_no_store_a_later_stage_accepts(drive_dir, tmp_path, cfg):
+    out = tmp_path / "d.zarr"
+    (partial_path(out)).mkdir()
+    zarr.open_group(str(partial_path(out)), mode="w").attrs["store"] = "gtgen-drive"
+    with pytest.raises(StoreError, match="failed extract"):
+        open_drive(out)
+    zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": 1, "complete": False})
+    with pytest.raises(StoreError, match="incomplete"):
+        open_drive(out)
+    zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": 0, "complete": True})
+    with pytest.raises(StoreError, match="version 0"):
+        open_drive(out)
+
+
+def test_cli_extract_summary_and_missing_file(drive_dir, tmp_path):
+    p = run_cli("extract", drive_dir / "drive.mcap", "-c", SMALL, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "samples kept" in p.stdout and "/xracer/map/micro" in p.stdout
+    assert (tmp_path / "gtgen_ws" / "drive.zarr").is_dir()  # the workspace default
+    p = run_cli("extract", tmp_path / "nope.mcap", cwd=tmp_path)
+    assert p.returncode == 1 and p.stderr.strip() == f"error: bag '{tmp_path / 'nope.mcap'}' does not exist"
