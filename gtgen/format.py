@@ -38,3 +38,19 @@ def markdown_table(specs: list[ArraySpec]) -> str:
     rows = ["| array | dtype | shape | units | frame | fill | meaning |", "|---|---|---|---|---|---|---|"]
     rows += [f"| `{s.path}` | {s.dtype} | {s.shape} | {s.units} | {s.frame} | {s.fill} | {s.doc} |" for s in specs]
     return "\n".join(rows)
+
+
+def dimension_names(spec: ArraySpec) -> list[str]:
+    """Return xarray-friendly dimension names of ``spec`` (from its shape symbols)."""
+    leaf = spec.path.rsplit("/", 1)[-1]
+    named = {"S": "sample", "R": "rejected", "P": "point", "H": "row", "W": "col", "S + 1": "sample_edge"}
+    out: list[str] = []
+    grid_axes = iter(("x", "y"))
+    for i, sym in enumerate(s.strip() for s in spec.shape.strip("()").split(",") if s.strip()):
+        if sym in named:
+            out.append(named[sym])
+        elif sym.startswith("n_") or sym in ("n", "nx", "ny"):
+            out.append(next(grid_axes))
+        else:
+            out.append(f"{leaf}_{i}")
+    return out

@@ -521,8 +521,8 @@ def _extrinsics(cfg: GtgenConfig, scan: _Scan) -> dict[str, tuple[NDArray, NDArr
 
 def _create(root, path: str, shape: tuple, chunks: tuple | None = None):
     sp = st.spec(path)
-    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks or shape if all(shape) else None,
-                             fill_value=sp.fill_value())
+    chunks = chunks or tuple(max(1, s) for s in shape)
+    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value())
 
 
 def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _Plan, extr) -> None:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.format import dimension_names
 from gtgen.shards import schema as sc
 
 
@@ -31,10 +32,12 @@ class ShardWriter:
             inner = [int(dims[d.strip()]) if d.strip() in dims else int(d) for d in s.shape.strip("()").split(",") if d.strip()][1:]
             shape = (dims["S"], *inner)
             self.arrays[s.path] = self.root.create_array(
-                s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value()
+                s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value(),
+                dimension_names=dimension_names(s),
             )
         self.points = self.root.create_array("inputs/voxel_points_m", shape=(0, 3), dtype="float32",
-                                             chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0)
+                                             chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0,
+                                             dimension_names=dimension_names(sc.spec("inputs/voxel_points_m")))
         self.offsets = [0]
         self.buffer: list[dict[str, NDArray]] = []
         self.n = 0
@@ -71,13 +74,15 @@ class ShardWriter:
         for arr in self.arrays.values():
             arr.resize((self.n, *arr.shape[1:]))
         off = self.root.create_array("inputs/voxel_offsets", shape=(self.n + 1,), dtype="int64",
-                                     chunks=(max(self.n + 1, 1),), fill_value=0)
+                                     chunks=(max(self.n + 1, 1),), fill_value=0,
+                                     dimension_names=dimension_names(sc.spec("inputs/voxel_offsets")))
         off[:] = np.asarray(self.offsets, np.int64)
         R = len(self.rejected)
         rej = list(zip(*self.rejected)) if R else [[] for _ in range(5)]
         for (name, dtype), col in zip((("t_ns", "int64"), ("drive", "uint16"), ("reason", "uint8"), ("icp_fitness", "float32"), ("icp_rmse_m", "float32")), rej):
             s = sc.spec(f"rejected/{name}")
-            arr = self.root.create_array(s.path, shape=(R,), dtype=dtype, chunks=(max(R, 1),), fill_value=s.fill_value())
+            arr = self.root.create_array(s.path, shape=(R,), dtype=dtype, chunks=(max(R, 1),), fill_value=s.fill_value(),
+                                         dimension_names=dimension_names(s))
             if R:
                 arr[:] = np.asarray(col, dtype=dtype)
         self.root.attrs.update(attrs)

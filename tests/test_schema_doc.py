@@ -1,0 +1,63 @@
+"""data_schema.md mirrors the code's formats; the dataset is what the schema says."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from gtgen.shards import schema as sc
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_data_schema_md_matches_the_code():
+    spec = importlib.util.spec_from_file_location("upd", ROOT / "scripts" / "update_schema_doc.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    doc = (ROOT / "data_schema.md").read_text()
+    assert mod.render(doc) == doc, "data_schema.md is stale: run python scripts/update_schema_doc.py"
+    for s in sc.DATASET_ARRAYS:
+        assert f"| `{s.path}` | {s.dtype} |" in doc
+
+
+def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset, cfg):
+    import zarr
+
+    g = zarr.open_group(str(dataset), mode="r")
+    S = g["meta/t_ns"].shape[0]
+    for s in sc.DATASET_ARRAYS:
+        a = g[s.path]
+        assert a.dtype == np.dtype(s.dtype), s.path
+        if s.shape.startswith("(S,"):
+            assert a.shape[0] == S and a.chunks[0] == 1, s.path
+            assert a.shards is not None and a.shards[0] == sc.SAMPLES_PER_SHARD, s.path
+    assert g["labels/micro/elevation_m"].shape == (S, cfg.grids.micro.size, cfg.grids.micro.size)
+    assert g["inputs/raw_elevation_m"].shape == (S, cfg.grids.short.size, cfg.grids.short.size)
+    a = g.attrs.asdict()
+    assert a["schema_version"] == sc.SCHEMA_VERSION and a["gtgen_version"] and a["config"]["fuse"]["window_s"] == cfg.fuse.window_s
+    assert len(a["drives"][0]["bags"][0]["sha256"]) == 64
+
+
+def test_dataset_opens_with_xarray(dataset):
+    import xarray as xr
+
+    ds = xr.open_zarr(str(dataset), group="labels/micro", consolidated=False)
+    assert "elevation_m" in ds and ds["elevation_m"].ndim == 3
+    ds = xr.open_zarr(str(dataset), group="meta", consolidated=False)
+    assert int(ds["t_ns"].shape[0]) > 0
+
+
+def test_region_semantics_in_the_dataset(dataset):
+    import zarr
+
+    g = zarr.open_group(str(dataset), mode="r")
+    for r in ("micro", "short"):
+        reg = g[f"labels/{r}/region"][:4]
+        el = g[f"labels/{r}/elevation_m"][:4]
+        dem = g[f"dem/{r}/elevation_m"][:4]
+        assert np.isfinite(el[reg > 0]).all() and np.isnan(el[reg == 0]).all()
+        np.testing.assert_array_equal(el[reg == 3], dem[reg == 3])  # DEM-filled
+        cnt = g[f"labels/{r}/count"][:4]
+        assert (cnt[(reg == 1) | (reg == 2)] > 0).all()
