@@ -14,6 +14,6 @@ cd "$OUT"
 "$GT" dem-align
 "$GT" report
 "$GT" viz --sample 5 -o sample5.png
-
-
-echo "demo: outputs in $OUT/ (figures: $OUT/report/*.png, $OUT/sample5.png)"
+"$GT" train --preset tiny
+"$GT" eval --ckpt runs/latest/ckpt.pt --viz 5
+echo "demo: outputs in $OUT/ (figures: $OUT/report/*.png, $OUT/sample5.png, predictions: $OUT/runs/tiny/pred_5.png)"

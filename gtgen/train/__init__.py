@@ -1,0 +1,1 @@
+"""M&M-lite: a lightweight RoadRunner M&M trainer and the paper's evaluation tables."""

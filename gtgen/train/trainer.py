@@ -1,0 +1,217 @@
+"""``gtgen train`` / ``gtgen eval``: the M&M-lite trainer and the paper's tables."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from gtgen.config import GtgenConfig, TrainConfig, configs_dir, read_yaml, save_config
+from gtgen.errors import ConfigError, TrainError
+from gtgen.progress import track
+from gtgen.train.data import ShardDataset
+from gtgen.train.loss import total_loss
+from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
+from gtgen.train.model import MMLite
+
+log = logging.getLogger(__name__)
+
+CKPT_VERSION = 1
+
+
+def preset_overrides(name: str) -> dict:
+    """Return the config layer of preset ``name`` (``configs/presets/<name>.yaml``)."""
+    path = configs_dir() / "presets" / f"{name}.yaml"
+    if not path.is_file():
+        names = sorted(p.stem for p in (configs_dir() / "presets").glob("*.yaml"))
+        raise ConfigError(f"preset {name!r} unknown; expected one of {names}")
+    layer = read_yaml(path)
+    layer.setdefault("train", {})["preset"] = name
+    return layer
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _collate(items: list[dict]) -> dict:
+    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+
+
+def _to(batch: dict, device: str) -> dict:
+    return {k: v.to(device) for k, v in batch.items()}
+
+
+def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
+    """Return a fresh model; loads ``backbone_weights`` into the image backbone if given."""
+    model = MMLite(tc, data_cfg.grids.short.length_m)
+    if tc.backbone_weights:
+        p = Path(tc.backbone_weights)
+        if not p.is_file():
+            raise TrainError(f"backbone weights '{p}' do not exist (no weights are downloaded)")
+        state = torch.load(p, map_location="cpu", weights_only=True)
+        missing, unexpected = model.lift.backbone.load_state_dict(state, strict=False)
+        log.info("backbone weights: %d missing, %d unexpected keys", len(missing), len(unexpected))
+    return model
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    steps: int
+    first_loss: float
+    last_loss: float
+    seconds: float
+    ckpt: Path
+
+
+def _save(path: Path, payload: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, max_steps: int | None = None) -> TrainResult:
+    """Train M&M-lite on the train split of ``dataset``; checkpoints and metrics go to ``run_dir``."""
+    tc = cfg.train
+    seed_everything(tc.seed)
+    ds = ShardDataset(dataset, tc, split="train")
+    if len(ds) == 0:
+        ds = ShardDataset(dataset, tc, split=None)
+        log.warning("the train split is empty; training on every sample")
+    model = build_model(tc, ds.data_cfg).to(tc.device)
+    opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=tc.lr, total_steps=tc.steps)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = run_dir / "ckpt.pt"
+    step, history = 0, []
+    if resume:
+        if not ckpt_path.is_file():
+            raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
+        state = _load_ckpt(ckpt_path, tc)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optim"])
+        sched.load_state_dict(state["sched"])
+        step, history = state["step"], state["history"]
+        torch.set_rng_state(state["torch_rng"])
+    save_config(cfg, run_dir / "gtgen-config.yaml")
+    g = torch.Generator()
+    g.manual_seed(tc.seed + step)
+    loader = DataLoader(ds, batch_size=tc.batch_size, shuffle=True, num_workers=tc.workers, collate_fn=_collate,
+                        drop_last=len(ds) >= tc.batch_size, generator=g, persistent_workers=tc.workers > 0)
+    end = tc.steps if max_steps is None else min(tc.steps, step + max_steps)
+    t0 = time.perf_counter()
+    model.train()
+
+    def batches():
+        while True:
+            yield from loader
+
+    it = batches()
+    for _ in track(range(step, end), "train: steps"):
+        batch = _to(next(it), tc.device)
+        pred = model(batch)
+        loss, parts = total_loss(pred, batch, tc)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+        sched.step()
+        step += 1
+        history.append({"step": step, **parts, "lr": sched.get_last_lr()[0]})
+        if step % tc.ckpt_every == 0 or step == end:
+            _save(ckpt_path, {"version": CKPT_VERSION, "preset": tc.preset, "train": tc.model_dump(mode="json"),
+                              "data_config": ds.data_cfg.model_dump(mode="json"), "model": model.state_dict(),
+                              "optim": opt.state_dict(), "sched": sched.state_dict(), "step": step, "history": history,
+                              "torch_rng": torch.get_rng_state()})
+    secs = time.perf_counter() - t0
+    (run_dir / "metrics.json").write_text(json.dumps({"history": history, "seconds": secs}, indent=1))
+    latest = run_dir.parent / "latest"
+    if latest.is_symlink() or not latest.exists():
+        if latest.is_symlink():
+            latest.unlink()
+        latest.symlink_to(run_dir.name)
+    first = history[0]["total"] if history else float("nan")
+    return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
+
+
+def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> dict:
+    if not path.is_file():
+        raise TrainError(f"checkpoint '{path}' does not exist")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
+        raise TrainError(f"checkpoint '{path}' cannot be read: {err}".splitlines()[0]) from err
+    if not isinstance(state, dict) or state.get("version") != CKPT_VERSION:
+        raise TrainError(f"'{path}' is not a gtgen checkpoint of version {CKPT_VERSION}")
+    if tc is not None and state["preset"] != tc.preset:
+        raise TrainError(f"checkpoint '{path}' is of preset {state['preset']!r}; expected {tc.preset!r}")
+    return state
+
+
+def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val") -> dict:
+    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (all if empty)."""
+    state = _load_ckpt(ckpt)
+    if preset is not None and preset != state["preset"]:
+        raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
+    tc = TrainConfig.model_validate(state["train"])
+    data_cfg = GtgenConfig.model_validate(state["data_config"])
+    ds = ShardDataset(dataset, tc, split=split)
+    used = split
+    if len(ds) == 0:
+        ds, used = ShardDataset(dataset, tc, split=None), "all"
+    if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
+        raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
+    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
+    model.load_state_dict(state["model"])
+    model.eval()
+    clip = tc.elevation_clip_m
+    acc = {r: {m: ElevationMAE() for m in ("model", "xracer", "raw")} for r in ("micro", "short")}
+    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in ("model", "xracer")} for r in ("micro", "short")}
+    cons = Consistency()
+    loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=0, collate_fn=_collate)
+    with torch.no_grad():
+        for batch in track(loader, "eval: batches"):
+            pred = model(batch)
+            for r in ("micro", "short"):
+                lab = batch[f"{r}/elevation"].numpy() * clip
+                reg = batch[f"{r}/region"].numpy()
+                acc[r]["model"].add(pred[f"{r}/elevation"].numpy() * clip, lab, reg)
+                acc[r]["xracer"].add(batch[f"{r}/xr_elevation"].numpy(), lab, reg)
+                acc[r]["raw"].add(batch[f"{r}/raw_elevation"].numpy(), lab, reg)
+                risk[r]["model"].add(pred[f"{r}/risk"].numpy(), batch[f"{r}/risk"].numpy())
+                risk[r]["xracer"].add(batch[f"{r}/xr_risk"].numpy(), batch[f"{r}/risk"].numpy())
+            cons.add(pred["micro/elevation"].numpy() * clip, pred["short/elevation"].numpy() * clip)
+    return {
+        "split": used, "samples": len(ds), "preset": state["preset"], "step": state["step"],
+        "elevation": {r: {m: a.table() for m, a in acc[r].items()} for r in acc},
+        "risk": {r: {m: v.table() for m, v in risk[r].items()} for r in risk},
+        "consistency_mae_m": cons.value(),
+        "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
+    }
+
+
+def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarray]:
+    """Return the model's maps for dataset sample ``index`` (elevation in metres)."""
+    state = _load_ckpt(ckpt)
+    tc = TrainConfig.model_validate(state["train"])
+    model = build_model(tc.model_copy(update={"backbone_weights": None}), GtgenConfig.model_validate(state["data_config"]))
+    model.load_state_dict(state["model"])
+    model.eval()
+    ds = ShardDataset(dataset, tc)
+    pos = np.nonzero(ds.indices == index)[0]
+    if not len(pos):
+        raise TrainError(f"sample {index} is not in the dataset (0..{ds.info.n_samples - 1})")
+    with torch.no_grad():
+        pred = model(_collate([ds[int(pos[0])]]))
+    return {k: v[0].numpy() * (tc.elevation_clip_m if k.endswith("elevation") else 1.0) for k, v in pred.items()}
