@@ -363,9 +363,9 @@ def eval_cmd(
         t = Table(title=f"{r} range: elevation MAE [m] (coverage of labelled cells) on {res['split']} ({res['samples']} samples)")
         for col in ("method", "obs PC", "obs F", "unobs", "total"):
             t.add_column(col)
-        names = {"model": "M&M-lite", "xracer": "X-Racer at t", "raw": "raw elevation (min z)"}
+        names = {"model": "M&M-lite", "model_on_raw_cells": "M&M-lite on the raw cells", "xracer": "X-Racer at t", "raw": "raw elevation (min z)"}
         for m, tab in res["elevation"][r].items():
-            cells = [f"{_fmt(tab[k]['mae_m'])} ({_fmt(tab[k]['coverage_pct'], True)})" if m != "model" else _fmt(tab[k]["mae_m"]) for k in ("obs_pc", "obs_f", "unobs", "total")]
+            cells = [f"{_fmt(tab[k]['mae_m'])} ({_fmt(tab[k]['coverage_pct'], True)})" if m not in ("model",) else _fmt(tab[k]["mae_m"]) for k in ("obs_pc", "obs_f", "unobs", "total")]
             t.add_row(names[m], *cells)
         con.print(t)
         t = Table(title=f"{r} range: risk (fatal >= threshold)")

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from gtgen import __version__, reasons
 from gtgen.bag import store as drive_store
 from gtgen.bag.poses import PoseTrack
-from gtgen.config import RANGES, GtgenConfig
+from gtgen.config import RANGES, GtgenConfig, save_config
 from gtgen.dem.fit import PlanarFit, fit_planar
 from gtgen.dem.icp import icp_4dof
 from gtgen.dem.tiles import TileIndex, sample_bilinear
@@ -259,6 +259,7 @@ def _align_all(cfg: GtgenConfig, drive, fused, index: TileIndex, fit: PlanarFit,
         "image_size": [W, H], "cameras": drive.attrs.get("cameras"),
     })
     n = writer.close(attrs)
+    save_config(cfg, tmp / "gtgen-config.yaml")
     if n:
         sp = writer.root["meta/split"][:]
         splits = {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}

@@ -152,7 +152,10 @@ def naive_fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) 
         yield k, _finish(s, I, J, maps, p, ssum, cnt, risk, last, cmax)
 
 
-_SLIDE = {"sum": ("float64", 0.0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1), "lstamp": ("int64", -1)}
+# elevation sums in integer micrometres: exact under any order of adds and subtracts, so
+# a drive fused in time chunks gives bit-identical labels to one pass
+SUM_SCALE = 1e6
+_SLIDE = {"sum": ("int64", 0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1), "lstamp": ("int64", -1)}
 _MAX = {"max": ("float32", -np.inf)}
 
 
@@ -176,7 +179,7 @@ class _Sliding:
         for slot, dst, src in self.atlas.windows(m.i0, m.j0, *m.shape, t, create=sign > 0):
             e, c = m.elevation[src], m.confidence[src]
             obs = np.isfinite(e) & (c > self.p.min_conf)
-            d["sum"][slot][dst] += sign * np.where(obs, e, 0.0)
+            d["sum"][slot][dst] += sign * np.where(obs, np.round(e * SUM_SCALE), 0).astype(np.int64)
             d["cnt"][slot][dst] += sign * obs
             if sign > 0:
                 r = m.risk[src]
@@ -198,7 +201,8 @@ class _Sliding:
         self.atlas.release_older_than(a)
 
     def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        ssum, cnt, risk, rstamp, lstamp = self.atlas.gather(I, J, ("sum", "cnt", "risk", "rstamp", "lstamp"))
+        isum, cnt, risk, rstamp, lstamp = self.atlas.gather(I, J, ("sum", "cnt", "risk", "rstamp", "lstamp"))
+        ssum = isum / SUM_SCALE
         risk = np.where(rstamp >= a, risk, np.nan)
         lstamp = np.where(lstamp >= a, lstamp, -1)
         return ssum, cnt, risk, lstamp

@@ -174,5 +174,9 @@ class MMLite(nn.Module):
         m = self.micro(torch.cat([x[..., a:b, a:b], d1[..., a:b, a:b]], 1))
         m = self.micro_refine(F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False))
         m = self.micro_head(m)
-        return {"short/elevation": s[:, 0], "short/risk": torch.sigmoid(s[:, 1]),
-                "micro/elevation": m[:, 0], "micro/risk": torch.sigmoid(m[:, 1])}
+        # the raw min-z elevation is a strong prior where the voxel map has points: the
+        # heads predict a residual over it (zero where there are no points)
+        prior = batch["raw"][:, :1] * batch["raw"][:, 1:2]
+        prior_m = F.interpolate(prior[..., a:b, a:b], size=m.shape[-2:], mode="nearest")
+        return {"short/elevation": s[:, 0] + prior[:, 0], "short/risk": torch.sigmoid(s[:, 1]),
+                "micro/elevation": m[:, 0] + prior_m[:, 0], "micro/risk": torch.sigmoid(m[:, 1])}

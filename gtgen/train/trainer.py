@@ -176,7 +176,7 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     model.load_state_dict(state["model"])
     model.eval()
     clip = tc.elevation_clip_m
-    acc = {r: {m: ElevationMAE() for m in ("model", "xracer", "raw")} for r in ("micro", "short")}
+    acc = {r: {m: ElevationMAE() for m in ("model", "model_on_raw_cells", "xracer", "raw")} for r in ("micro", "short")}
     risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in ("model", "xracer")} for r in ("micro", "short")}
     cons = Consistency()
     loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=0, collate_fn=_collate)
@@ -186,9 +186,13 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
             for r in ("micro", "short"):
                 lab = batch[f"{r}/elevation"].numpy() * clip
                 reg = batch[f"{r}/region"].numpy()
-                acc[r]["model"].add(pred[f"{r}/elevation"].numpy() * clip, lab, reg)
+                pe = pred[f"{r}/elevation"].numpy() * clip
+                raw = batch[f"{r}/raw_elevation"].numpy()
+                acc[r]["model"].add(pe, lab, reg)
+                # like for like with the raw baseline: only where the min-z grid has a value
+                acc[r]["model_on_raw_cells"].add(np.where(np.isfinite(raw), pe, np.nan), lab, reg)
                 acc[r]["xracer"].add(batch[f"{r}/xr_elevation"].numpy(), lab, reg)
-                acc[r]["raw"].add(batch[f"{r}/raw_elevation"].numpy(), lab, reg)
+                acc[r]["raw"].add(raw, lab, reg)
                 risk[r]["model"].add(pred[f"{r}/risk"].numpy(), batch[f"{r}/risk"].numpy())
                 risk[r]["xracer"].add(batch[f"{r}/xr_risk"].numpy(), batch[f"{r}/risk"].numpy())
             cons.add(pred["micro/elevation"].numpy() * clip, pred["short/elevation"].numpy() * clip)

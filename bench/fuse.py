@@ -1,0 +1,52 @@
+"""Fusion at paper grid sizes: fast vs naive oracle, window 120 s vs 15 s, RSS 1x vs 4x."""
+
+from __future__ import annotations
+
+import shutil
+
+from _common import OUT, drive, header, run_measured
+
+NAIVE = """
+import time, itertools, sys
+from pathlib import Path
+from gtgen.bag.store import open_drive
+from gtgen.config import load_config
+from gtgen.fuse.fusion import naive_fuse_range, fuse_range
+from gtgen.fuse.run import zarr_map_source, sample_grids, params
+cfg = load_config()
+d = open_drive(Path(sys.argv[1]))
+g = cfg.grids.micro
+maps = zarr_map_source(d, "micro", g.resolution_m)
+samples = sample_grids(d, "micro", g.size, g.resolution_m)
+n = int(sys.argv[2])
+sel = samples[len(samples) // 3 : len(samples) // 3 + n]
+t = time.perf_counter(); list(naive_fuse_range(maps, sel, params(cfg))); tn = time.perf_counter() - t
+t = time.perf_counter(); list(fuse_range(maps, samples, params(cfg))); tf = time.perf_counter() - t
+print(tn / n, tf / len(samples))
+"""
+
+if __name__ == "__main__":
+    header("bench/fuse.py")
+    d = drive(120)
+    ws = OUT / "ws_fuse"
+    shutil.rmtree(ws, ignore_errors=True)
+    ws.mkdir()
+    run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
+    import subprocess, sys
+
+    p = subprocess.run([sys.executable, "-c", NAIVE, str(ws / "drive.zarr"), "6"], capture_output=True, text=True, check=True)
+    naive_s, fast_s = map(float, p.stdout.split())
+    print(f"micro range, window 60 s: naive oracle {naive_s:.2f} s/sample, fast {fast_s:.3f} s/sample: speed-up {naive_s / fast_s:.1f}x (goal >= 10x)")
+    times = {}
+    for w in (15, 120):
+        times[w], _ = run_measured(["fuse", str(ws / "drive.zarr"), "--window", str(w), "-o", str(ws / f"f{w}.zarr")])
+    print(f"fuse both ranges: window 15 s {times[15]:.1f} s, window 120 s {times[120]:.1f} s: ratio {times[120] / times[15]:.2f} (goal <= 1.3)")
+    rss = {}
+    for dur in (30, 120):
+        dd = drive(dur)
+        w2 = OUT / f"ws_fuse_{dur}"
+        shutil.rmtree(w2, ignore_errors=True)
+        w2.mkdir()
+        run_measured(["extract", str(dd / "drive.mcap"), "-o", str(w2 / "drive.zarr")])
+        _, rss[dur] = run_measured(["fuse", str(w2 / "drive.zarr"), "--workers", "1", "-o", str(w2 / "fused.zarr")])
+    print(f"fuse peak RSS: 30 s drive {rss[30]:.0f} MiB, 120 s drive {rss[120]:.0f} MiB: ratio {rss[120] / rss[30]:.2f} (goal: <= 2 GiB, flat)")

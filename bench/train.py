@@ -1,0 +1,44 @@
+"""Training speed and memory of the tiny preset on CPU; paper preset forward time."""
+
+from __future__ import annotations
+
+import shutil
+
+from _common import OUT, drive, header, run_measured
+
+FORWARD = """
+import time, torch
+from gtgen.config import load_config
+from gtgen.train.trainer import preset_overrides, build_model
+cfg = load_config(None, preset_overrides("paper"))
+tc = cfg.train
+m = build_model(tc, cfg).eval()
+S = 60000
+b = {"images": torch.randn(1, 4, 3, tc.image_height, tc.image_width), "K": torch.tensor([[[400., 0, 320], [0, 400, 198], [0, 0, 1]]]).repeat(1, 4, 1, 1),
+     "T_target_cam": torch.eye(4).repeat(1, 4, 1, 1), "points": torch.randn(1, S, 3) * 40, "n_points": torch.tensor([S]),
+     "raw": torch.zeros(1, 2, tc.short_size, tc.short_size)}
+b["T_target_cam"][..., :3, :3] = torch.tensor([[0., 0, 1], [-1, 0, 0], [0, -1, 0]])
+with torch.no_grad():
+    m(b); t = time.perf_counter(); m(b); dt = time.perf_counter() - t
+print(dt, sum(p.numel() for p in m.parameters()))
+"""
+
+if __name__ == "__main__":
+    header("bench/train.py")
+    d = drive(120)
+    ws = OUT / "ws_pipeline"
+    if not (ws / "dataset.zarr").is_dir():
+        ws.mkdir(parents=True, exist_ok=True)
+        run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
+        run_measured(["fuse", str(ws / "drive.zarr")])
+        run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
+    run = OUT / "run_tiny"
+    shutil.rmtree(run, ignore_errors=True)
+    steps = 40
+    dt, rss = run_measured(["train", str(ws / "dataset.zarr"), "--preset", "tiny", "--steps", str(steps), "--run", str(run)])
+    print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
+    import subprocess, sys
+
+    p = subprocess.run([sys.executable, "-c", FORWARD], capture_output=True, text=True, check=True)
+    fw, n = p.stdout.split()
+    print(f"paper preset: {int(n) / 1e6:.1f} M parameters; forward pass of one sample on CPU {float(fw) * 1000:.0f} ms (paper: 100 ms on a GPU)")
