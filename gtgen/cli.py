@@ -386,10 +386,35 @@ def eval_cmd(
     _table("gtgen eval", rows)
 
 
+@app.command()
+def build(
+    sources: list[Path] = typer.Argument(..., help="manifest YAML, drive folders, a folder of drive folders, or bags"),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside each drive's bags]"),
+    out: Path = typer.Option(Path("gtgen_build"), "-o", "--out", help="output folder (dataset.zarr + drives/)"),
+    workers: int = typer.Option(2, help="local worker processes"),
+    scheduler: Optional[str] = typer.Option(None, help="dask.distributed scheduler address (e.g. tcp://host:8786)"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Build one dataset from many drives (extract -> fuse -> dem-align each), resumable.
+
+    **Examples**
+
+        gtgen build drives/ --dem usgs_1m/ -o paso_dataset --workers 2
+        gtgen build manifest.yaml --scheduler tcp://10.0.0.5:8786
+    """
+    from pipelines.build_dataset import build_dataset, summary_rows
+
+    cfg = _load(config)
+    res = build_dataset(sources, dem, out, cfg, workers=workers, scheduler=scheduler)
+    _table("gtgen build", summary_rows(res))
+    if any(not r.ok for r in res.drives):
+        raise typer.Exit(code=2)
+
+
 def main() -> None:
     """Run the CLI; map gtgen errors to one line on stderr and exit code 1."""
     try:
-        app(standalone_mode=False)
+        rc = app(standalone_mode=False)
     except GtgenError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(1)
@@ -408,3 +433,5 @@ def main() -> None:
             err.show()
             sys.exit(err.exit_code)
         raise
+    if isinstance(rc, int) and rc:
+        sys.exit(rc)

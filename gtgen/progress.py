@@ -47,8 +47,12 @@ def _bar(total: float | None, desc: str) -> Iterator[object]:
         yield (prog, task)
 
 
-def track(items: Iterable[T], desc: str, total: float | None = None) -> Iterator[T]:
-    """Yield ``items`` unchanged while showing a progress bar on a terminal."""
+def track(items: Iterable[T], desc: str, total: float | None = None, status=None) -> Iterator[T]:
+    """Yield ``items`` unchanged while showing a progress bar on a terminal.
+
+    ``status``, if given, is called after each item and its text is shown after ``desc``
+    (the trainer shows its loss this way).
+    """
     if total is None and hasattr(items, "__len__"):
         total = len(items)  # type: ignore[arg-type]
     log.debug("%s: %s items", desc, total)
@@ -57,4 +61,4 @@ def track(items: Iterable[T], desc: str, total: float | None = None) -> Iterator
             yield item
             if handle is not None:
                 prog, task = handle  # type: ignore[misc]
-                prog.advance(task)
+                prog.update(task, advance=1, description=f"{desc} {status()}" if status else desc)

@@ -118,7 +118,10 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
             yield from loader
 
     it = batches()
-    for _ in track(range(step, end), "train: steps"):
+    def status() -> str:
+        return f"loss {history[-1]['total']:.4f}" if history else ""
+
+    for _ in track(range(step, end), "train:", status=status):
         batch = _to(next(it), tc.device)
         pred = model(batch)
         loss, parts = total_loss(pred, batch, tc)

@@ -1,0 +1,1 @@
+"""Dataset jobs that compose gtgen's stages over many drives (process pool or Dask)."""

@@ -1,0 +1,288 @@
+"""Build one dataset from many drives: extract -> fuse -> dem-align per drive, then merge.
+
+``build_dataset()`` reads like its steps: find the drives, skip the ones already done
+with the same inputs, run the rest on a local process pool or a dask.distributed
+cluster, then merge every drive's shards into one dataset with a provenance manifest.
+
+Each drive is one unit of work written under ``OUT/drives/<name>/``; a unit is done
+when its ``done.json`` (written last, atomically) records the hash of its inputs (bag
+sha256s, resolved config, gtgen version). A re-run skips done units and redoes changed
+ones; a killed run leaves only ``.partial`` stores, which the re-run replaces. Every
+stage is deterministic, so the result is the same however the work was split.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gtgen import __version__, reasons
+from gtgen.bag.reader import SUFFIXES
+from gtgen.config import GtgenConfig, save_config
+from gtgen.errors import ConfigError, GtgenError, InputNotFoundError
+from gtgen.progress import track
+
+log = logging.getLogger(__name__)
+
+DONE = "done.json"
+
+
+@dataclass
+class DriveResult:
+    """What one drive unit produced (or why it failed)."""
+
+    name: str
+    ok: bool
+    skipped: bool = False
+    error: str = ""
+    samples: int = 0
+    kept: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class BuildResult:
+    out: Path
+    drives: list[DriveResult]
+    n_samples: int
+    split: dict[str, int]
+    seconds: float
+
+
+def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
+    """Return {drive name: bag paths} from a manifest YAML, drive folders, or bag files.
+
+    A manifest maps names to bag lists (``drives: {name: [bag, ...]}``). A folder that
+    holds bags (or is a rosbag2 recording) is one drive; a folder of such folders is
+    one drive per subfolder; a bag file alone is a drive named after it.
+    """
+    import yaml
+
+    drives: dict[str, list[Path]] = {}
+
+    def add(name: str, bags: list[Path]) -> None:
+        if name in drives:
+            raise ConfigError(f"drive name {name!r} appears twice; rename one of its folders or manifest entries")
+        drives[name] = sorted(bags)
+
+    for src in sources:
+        if not src.exists():
+            raise InputNotFoundError(f"source '{src}' does not exist")
+        if src.is_file() and src.suffix in (".yaml", ".yml"):
+            data = yaml.safe_load(src.read_text()) or {}
+            entries = data.get("drives")
+            if not isinstance(entries, dict):
+                raise ConfigError(f"manifest '{src}' must have 'drives: {{name: [bag, ...]}}'")
+            for name, bags in entries.items():
+                add(str(name), [(src.parent / b).resolve() for b in bags])
+        elif src.is_file():
+            add(src.stem, [src.resolve()])
+        elif (src / "metadata.yaml").is_file():
+            add(src.name, [src.resolve()])
+        else:
+            bags = [p.resolve() for p in sorted(src.iterdir()) if p.suffix in SUFFIXES or (p / "metadata.yaml").is_file()]
+            if bags:
+                add(src.name, bags)
+            else:
+                for sub in sorted(p for p in src.iterdir() if p.is_dir()):
+                    inner = [p.resolve() for p in sorted(sub.iterdir()) if p.suffix in SUFFIXES or (p / "metadata.yaml").is_file()]
+                    if inner:
+                        add(sub.name, inner)
+    if not drives:
+        raise InputNotFoundError(f"no bags found in {[str(s) for s in sources]}")
+    return drives
+
+
+def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path) -> str:
+    """Return the hash of one drive unit's inputs."""
+    from gtgen.bag.extract import hash_bag
+
+    h = hashlib.sha256()
+    for b in bags:
+        h.update(hash_bag(b).encode())
+    h.update(json.dumps(cfg_json, sort_keys=True).encode())
+    for t in sorted(dem_dir.glob("*.tif")):
+        st = t.stat()
+        h.update(f"{t.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    h.update(__version__.encode())
+    return h.hexdigest()
+
+
+def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json: dict) -> DriveResult:
+    """Run extract, fuse and dem-align for one drive (a picklable task for any executor)."""
+    from gtgen.bag.extract import run_extract
+    from gtgen.dem.run import run_dem_align
+    from gtgen.fuse.run import run_fuse
+
+    cfg = GtgenConfig.model_validate(cfg_json)
+    folder = Path(work) / name
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / DONE).unlink(missing_ok=True)
+    res = DriveResult(name, ok=False)
+    try:
+        t = time.perf_counter()
+        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg)
+        res.seconds["extract"] = time.perf_counter() - t
+        t = time.perf_counter()
+        run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=1)
+        res.seconds["fuse"] = time.perf_counter() - t
+        t = time.perf_counter()
+        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg)
+        res.seconds["dem-align"] = time.perf_counter() - t
+    except GtgenError as err:
+        res.error = f"{type(err).__name__}: {err}"
+        return res
+    res.ok, res.samples, res.kept = True, ex.n_samples, al.n_kept
+    res.rejected = {**ex.rejected, **al.rejected}
+    return res
+
+
+def _mark_done(folder: Path, digest: str, res: DriveResult) -> None:
+    tmp = folder / (DONE + ".tmp")
+    tmp.write_text(json.dumps({"hash": digest, "result": res.__dict__}))
+    os.replace(tmp, folder / DONE)
+
+
+def _already_done(folder: Path, digest: str) -> DriveResult | None:
+    try:
+        data = json.loads((folder / DONE).read_text())
+    except (OSError, ValueError):
+        return None
+    if data.get("hash") != digest or not (folder / "dataset.zarr").is_dir():
+        return None
+    r = DriveResult(**data["result"])
+    r.skipped = True
+    return r
+
+
+def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: GtgenConfig,
+                  workers: int = 2, scheduler: str | None = None) -> BuildResult:
+    """Build ``out/dataset.zarr`` from every drive in ``sources``; see the module docstring."""
+    t0 = time.perf_counter()
+    drives = find_drives(sources)
+    work = out / "drives"
+    work.mkdir(parents=True, exist_ok=True)
+    cfg_json = cfg.model_dump(mode="json")
+    todo, results = [], {}
+    for name, bags in drives.items():
+        ddir = dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem")
+        digest = unit_hash(bags, cfg_json, ddir)
+        done = _already_done(work / name, digest)
+        if done is not None:
+            results[name] = done
+        else:
+            todo.append((name, [str(b) for b in bags], str(ddir), str(work), cfg_json, digest))
+    for res, digest in _execute(todo, workers, scheduler):
+        if res.ok:
+            _mark_done(work / res.name, digest, res)
+        results[res.name] = res
+    ordered = [results[n] for n in drives]
+    n, split = _merge([work / r.name / "dataset.zarr" for r in ordered if r.ok], [r.name for r in ordered if r.ok], out, cfg, ordered)
+    return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
+
+
+def _execute(todo: list[tuple], workers: int, scheduler: str | None):
+    """Yield (DriveResult, input hash) for each unit, as they finish."""
+    if not todo:
+        return
+    if scheduler:
+        from dask.distributed import Client, as_completed
+
+        with Client(scheduler) as client:
+            futs = {client.submit(process_drive, *t[:5], pure=False): t[5] for t in todo}
+            for fut in track(as_completed(futs), "build: drives", total=len(futs)):
+                yield fut.result(), futs[fut]
+        return
+    if workers <= 1:
+        for t in track(todo, "build: drives"):
+            yield process_drive(*t[:5]), t[5]
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+        futs = {ex.submit(process_drive, *t[:5]): t[5] for t in todo}
+        for fut in track(done_first(futs), "build: drives", total=len(futs)):
+            yield fut.result(), futs[fut]
+
+
+def _merge(stores: list[Path], names: list[str], out: Path, cfg: GtgenConfig, results: list[DriveResult]) -> tuple[int, dict[str, int]]:
+    """Write ``out/dataset.zarr`` holding every drive's samples in drive order."""
+    import importlib.metadata as md
+
+    import zarr
+
+    from gtgen.bag.store import finalize, jsonable, partial_path
+    from gtgen.shards import schema as sc
+    from gtgen.shards.writer import ShardWriter
+
+    target = out / "dataset.zarr"
+    tmp = partial_path(target)
+    shutil.rmtree(tmp, ignore_errors=True)
+    groups = [zarr.open_group(str(s), mode="r") for s in stores]
+    total = sum(int(g["meta/t_ns"].shape[0]) for g in groups)
+    if not groups:
+        raise GtgenError("every drive failed: " + "; ".join(f"{r.name}: {r.error}" for r in results))
+    W, H = groups[0].attrs["image_size"]
+    writer = ShardWriter(tmp, total, cfg.grids.micro.size, cfg.grids.short.size, (H, W))
+    names_arr = [s.path for s in sc.DATASET_ARRAYS if s.path in writer.arrays]
+    drives_attr = []
+    for d, (g, name) in enumerate(zip(groups, names)):
+        S = int(g["meta/t_ns"].shape[0])
+        off = g["inputs/voxel_offsets"][:]
+        for k in track(range(S), f"build: merging {name}"):
+            sample = {p: g[p][k] for p in names_arr}
+            sample["meta/drive"] = np.uint16(d)
+            writer.add(sample, g["inputs/voxel_points_m"][off[k] : off[k + 1]])
+        for t, rs, f, r in zip(g["rejected/t_ns"][:], g["rejected/reason"][:], g["rejected/icp_fitness"][:], g["rejected/icp_rmse_m"][:]):
+            writer.reject(int(t), d, int(rs), float(f), float(r))
+        a = g.attrs.asdict()
+        drives_attr.append({"name": name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})
+    versions = {p: md.version(p) for p in ("numpy", "zarr", "rosbags", "rasterio", "pyproj", "open3d-cpu", "torch") if _has(p)}
+    attrs = jsonable({
+        "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True, "gtgen_version": __version__,
+        "config": cfg.model_dump(mode="json"), "drives": drives_attr, "crs": groups[0].attrs["crs"],
+        "reasons": reasons.REASONS, "splits": sc.SPLITS, "image_size": [W, H], "cameras": groups[0].attrs.get("cameras"),
+        "alignment": groups[0].attrs["alignment"],
+        "provenance": {"dependencies": versions, "units": [r.__dict__ for r in results]},
+    })
+    n = writer.close(attrs)
+    save_config(cfg, tmp / "gtgen-config.yaml")
+    finalize(tmp, target)
+    sp = zarr.open_group(str(target), mode="r")["meta/split"][:]
+    return n, {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}
+
+
+def _has(pkg: str) -> bool:
+    import importlib.metadata as md
+
+    try:
+        md.version(pkg)
+        return True
+    except md.PackageNotFoundError:
+        return False
+
+
+def summary_rows(res: BuildResult) -> list[tuple[str, Any]]:
+    """Return the rows of the final table."""
+    rows: list[tuple[str, Any]] = [("dataset", res.out / "dataset.zarr"), ("samples", res.n_samples)]
+    rows += [(f"  split {k}", v) for k, v in res.split.items()]
+    for r in res.drives:
+        if r.ok:
+            st = ", ".join(f"{k} {v:.1f} s" for k, v in r.seconds.items()) if not r.skipped else "done earlier (skipped)"
+            rej = ", ".join(f"{k} {v}" for k, v in r.rejected.items()) or "none"
+            rows.append((f"drive {r.name}", f"kept {r.kept} of {r.samples}; rejected: {rej}; {st}"))
+        else:
+            rows.append((f"drive {r.name}", f"FAILED: {r.error}"))
+    rows.append(("time", f"{res.seconds:.1f} s"))
+    return rows

@@ -1,0 +1,121 @@
+"""pipelines/build_dataset: pool vs Dask, kill + resume, a corrupt drive among good ones."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from bagtools import rewrite_mcap
+from conftest import SMALL, small_config
+from pipelines.build_dataset import build_dataset
+from gtgen.synth import run_synth
+
+ARRAYS = ("labels/micro/elevation_m", "labels/short/region", "labels/short/risk", "meta/t_ns", "meta/drive",
+          "meta/T_crs_target", "inputs/images", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
+
+
+@pytest.fixture(scope="module")
+def drives(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("drives")
+    for name, seed in (("a", 0), ("b", 1), ("c", 2)):
+        run_synth(small_config(synth={"duration_s": 3.0, "seed": seed, "formats": "mcap"}), root / name)
+    # drive c arrives as two bags
+    c = root / "c"
+    t = []
+
+    def first(topic, t_rec, msg):
+        t.append(t_rec)
+        if t_rec < t[0] + 1_500_000_000:
+            yield t_rec, msg
+
+    def second(topic, t_rec, msg):
+        if t_rec >= t[0] + 1_500_000_000 or topic == "/tf_static":
+            yield t_rec, msg
+
+    rewrite_mcap(c / "drive.mcap", c / "part_0.mcap", first)
+    rewrite_mcap(c / "drive.mcap", c / "part_1.mcap", second)
+    (c / "drive.mcap").unlink()
+    return root
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    g = zarr.open_group(str(path / "dataset.zarr"), mode="r")
+    return {k: g[k][:] for k in ARRAYS}
+
+
+def _same(a: dict, b: dict) -> None:
+    for k in ARRAYS:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+@pytest.fixture(scope="module")
+def pool_build(drives, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("pool")
+    res = build_dataset([drives], None, out, small_config(), workers=2)
+    assert [r.name for r in res.drives] == ["a", "b", "c"] and all(r.ok for r in res.drives)
+    assert res.n_samples > 0 and set(np.unique(_arrays(out)["meta/drive"])) == {0, 1, 2}
+    g = zarr.open_group(str(out / "dataset.zarr"), mode="r")
+    prov = g.attrs["provenance"]
+    assert "numpy" in prov["dependencies"] and len(prov["units"]) == 3
+    assert all(len(b["sha256"]) == 64 for d in g.attrs["drives"] for b in d["bags"])
+    assert len(g.attrs["drives"][2]["bags"]) == 2
+    return out
+
+
+def test_pool_and_dask_give_identical_arrays(drives, pool_build, tmp_path):
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        res = build_dataset([drives], None, tmp_path, small_config(), scheduler=cluster.scheduler_address)
+    assert all(r.ok for r in res.drives)
+    _same(_arrays(pool_build), _arrays(tmp_path))
+
+
+def test_rerun_skips_done_drives(drives, pool_build):
+    res = build_dataset([drives], None, pool_build, small_config(), workers=2)
+    assert all(r.skipped for r in res.drives)
+
+
+def test_killed_run_resumed_gives_identical_arrays(drives, pool_build, tmp_path):
+    cmd = [sys.executable, "-m", "gtgen", "build", str(drives), "-o", str(tmp_path), "--workers", "1", "-c", str(SMALL)]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((tmp_path / "drives").glob("*/done.json")):
+        time.sleep(0.2)
+    time.sleep(1.0)  # let it get into the next drive
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    assert list((tmp_path / "drives").glob("*/done.json")), "the build never finished a drive"
+    assert not (tmp_path / "dataset.zarr").exists()
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert "skipped" in p.stdout
+    _same(_arrays(pool_build), _arrays(tmp_path))
+
+
+def test_corrupt_bag_fails_its_drive_only(drives, tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    for n in ("a", "b"):
+        (src / n).symlink_to(drives / n)
+    bad = src / "z_bad"
+    bad.mkdir()
+    data = (drives / "a" / "drive.mcap").read_bytes()
+    (bad / "drive.mcap").write_bytes(data[: len(data) // 3])
+    shutil.copytree(drives / "a" / "dem", bad / "dem")
+    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(src), "-o", str(tmp_path / "o"), "-c", str(SMALL)],
+                       capture_output=True, text=True)
+    assert p.returncode == 2
+    text = " ".join(p.stdout.replace("│", " ").split())
+    assert "drive z_bad FAILED" in text and "truncated or corrupt" in text
+    g = zarr.open_group(str(tmp_path / "o" / "dataset.zarr"), mode="r")
+    assert [d["name"] for d in g.attrs["drives"]] == ["a", "b"]
