@@ -33,6 +33,14 @@ class ArraySpec:
         return np.dtype(self.dtype).type(float(self.fill) if "float" in self.dtype else int(self.fill)).item()
 
 
+def find(specs: list[ArraySpec], path: str) -> ArraySpec:
+    """Return the spec of array ``path`` in ``specs``."""
+    for s in specs:
+        if s.path == path:
+            return s
+    raise KeyError(path)
+
+
 def markdown_table(specs: list[ArraySpec]) -> str:
     """Return ``specs`` as the markdown table used in data_schema.md."""
     rows = ["| array | dtype | shape | units | frame | fill | meaning |", "|---|---|---|---|---|---|---|"]

@@ -35,3 +35,19 @@ def rewrite_mcap(src: Path, dst: Path, edit: Edit) -> Path:
     mcap.rename(dst)
     shutil.rmtree(tmp)
     return dst
+
+
+def split_mcap(src: Path, first: Path, second: Path, after_s: float) -> tuple[Path, Path]:
+    """Split a drive into two bare .mcap files at ``after_s`` seconds (tf_static in both)."""
+    t0: list[int] = []
+
+    def head(topic, t, msg):
+        t0.append(t) if not t0 else None
+        if t < t0[0] + after_s * 1e9:
+            yield t, msg
+
+    def tail(topic, t, msg):
+        if t >= t0[0] + after_s * 1e9 or topic == "/tf_static":
+            yield t, msg
+
+    return rewrite_mcap(src, first, head), rewrite_mcap(src, second, tail)

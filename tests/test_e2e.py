@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bagtools import rewrite_mcap
+from bagtools import split_mcap
 from conftest import run_cli
 
 
@@ -31,19 +31,7 @@ def test_a_drive_split_into_two_bags_equals_one_bag(drive_dir, drive_store, cfg,
     from gtgen.bag.extract import run_extract
     from gtgen.bag.store import open_drive
 
-    t = []
-
-    def first(topic, t_rec, msg):
-        t.append(t_rec)
-        if t_rec < t[0] + 4_000_000_000:
-            yield t_rec, msg
-
-    def second(topic, t_rec, msg):
-        if t_rec >= t[0] + 4_000_000_000 or topic == "/tf_static":
-            yield t_rec, msg
-
-    a = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "part_0.mcap", first)
-    b = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "part_1.mcap", second)
+    a, b = split_mcap(drive_dir / "drive.mcap", tmp_path / "part_0.mcap", tmp_path / "part_1.mcap", 4.0)
     run_extract([a, b], tmp_path / "two.zarr", cfg)
     x, y = open_drive(drive_store), open_drive(tmp_path / "two.zarr")
     for name in ("samples/t_ns", "poses/t_ns", "maps/short/t_ns", "samples/images"):

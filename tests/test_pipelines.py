@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zarr
 
-from bagtools import rewrite_mcap
+from bagtools import split_mcap
 from conftest import SMALL, small_config
 from pipelines.build_dataset import build_dataset
 from gtgen.synth import run_synth
@@ -30,19 +30,7 @@ def drives(tmp_path_factory) -> Path:
         run_synth(small_config(synth={"duration_s": 3.0, "seed": seed, "formats": "mcap"}), root / name)
     # drive c arrives as two bags
     c = root / "c"
-    t = []
-
-    def first(topic, t_rec, msg):
-        t.append(t_rec)
-        if t_rec < t[0] + 1_500_000_000:
-            yield t_rec, msg
-
-    def second(topic, t_rec, msg):
-        if t_rec >= t[0] + 1_500_000_000 or topic == "/tf_static":
-            yield t_rec, msg
-
-    rewrite_mcap(c / "drive.mcap", c / "part_0.mcap", first)
-    rewrite_mcap(c / "drive.mcap", c / "part_1.mcap", second)
+    split_mcap(c / "drive.mcap", c / "part_0.mcap", c / "part_1.mcap", 1.5)
     (c / "drive.mcap").unlink()
     return root
 

@@ -14,7 +14,7 @@ from typing import Any
 
 from gtgen.config import CAMERAS, RANGES
 from gtgen.errors import StoreError
-from gtgen.format import ArraySpec
+from gtgen.format import ArraySpec, find
 
 DRIVE_STORE = "gtgen-drive"
 DRIVE_VERSION = 1
@@ -61,10 +61,7 @@ DRIVE_ARRAYS: list[ArraySpec] = [
 
 def spec(path: str) -> ArraySpec:
     """Return the spec of drive-store array ``path``."""
-    for s in DRIVE_ARRAYS:
-        if s.path == path:
-            return s
-    raise KeyError(path)
+    return find(DRIVE_ARRAYS, path)
 
 
 def partial_path(path: Path) -> Path:

@@ -151,7 +151,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     tmp = drive_store.partial_path(out)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        result = _align_all(cfg, drive, fused, index, fit, dz_dem, tmp)
+        result = _align_all(cfg, drive_path, drive, fused, index, fit, dz_dem, tmp)
         result.store = out
         drive_store.finalize(tmp, out)
     except BaseException:
@@ -173,7 +173,7 @@ def _check_overlap(index: TileIndex, fit: PlanarFit, track_: PoseTrack, dem_dir:
         )
 
 
-def _align_all(cfg: GtgenConfig, drive, fused, index: TileIndex, fit: PlanarFit, dz_dem: float, tmp: Path) -> AlignResult:
+def _align_all(cfg: GtgenConfig, drive_path: Path, drive, fused, index: TileIndex, fit: PlanarFit, dz_dem: float, tmp: Path) -> AlignResult:
     S = int(drive["samples/t_ns"].shape[0])
     t_s = drive["samples/t_ns"][:]
     pos = drive["samples/pos_odom_m"][:]
@@ -210,7 +210,7 @@ def _align_all(cfg: GtgenConfig, drive, fused, index: TileIndex, fit: PlanarFit,
             continue
         src = np.column_stack([Xs[src_mask], Ys[src_mask], el_s[src_mask]])
         if len(src) > dc.icp_max_points:
-            src = src[np.random.default_rng([cfg.synth.seed, k]).choice(len(src), dc.icp_max_points, replace=False)]
+            src = src[np.random.default_rng(k).choice(len(src), dc.icp_max_points, replace=False)]  # per-sample seed: order-free
         tgt = np.column_stack([Xs[tgt_mask], Ys[tgt_mask], dem_s[tgt_mask]])
         nrm = _normals(np.where(tgt_mask, dem_s, np.nanmedian(dem_s)), gs.resolution_m)[tgt_mask]
         res = icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations)
@@ -251,7 +251,7 @@ def _align_all(cfg: GtgenConfig, drive, fused, index: TileIndex, fit: PlanarFit,
     attrs = drive_store.jsonable({
         "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True,
         "gtgen_version": __version__, "config": cfg.model_dump(mode="json"),
-        "drives": [{"drive_store": str(Path(str(drive.store_path)).resolve()) if hasattr(drive, "store_path") else "", "bags": drive.attrs.get("bags", [])}],
+        "drives": [{"drive_store": str(drive_path.resolve()), "bags": drive.attrs.get("bags", [])}],
         "crs": index.crs, "reasons": reasons.REASONS, "splits": sc.SPLITS,
         "alignment": {"gnss_yaw_rad": fit.yaw, "gnss_tx_m": fit.tx, "gnss_ty_m": fit.ty, "gnss_rms_m": fit.rms_m,
                       "gnss_used": fit.n_used, "gnss_outliers": fit.n_outliers, "dz_dem_m": dz_dem,

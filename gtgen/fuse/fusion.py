@@ -241,15 +241,16 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
         atlas = Atlas(p.tile, _MAX)
         in_blk = np.nonzero((t >= lo) & (t < mid))[0][::-1]
         pos = 0
+        # only the float32 suffix maxima wait for the forward pass (memory: one grid per
+        # sample of a window); the lattice indices are cheap to recompute
         suffix: dict[int, NDArray] = {}
-        grids: dict[int, tuple[NDArray, NDArray]] = {}
         for k in sorted(group, key=lambda k: -bounds[k][0]):
             while pos < len(in_blk) and t[in_blk[pos]] >= bounds[k][0]:
                 _max_splat(atlas, maps[int(in_blk[pos])])
                 pos += 1
             s = samples[k]
-            grids[k] = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
-            suffix[k] = atlas.gather(*grids[k], ("max",))[0]
+            suffix[k] = atlas.gather(*target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw), ("max",))[0]
+        del atlas
         # prefix maxima after the block, forwards; samples leave in time order (= b order)
         atlas = Atlas(p.tile, _MAX)
         nxt = np.nonzero(t >= mid)[0]
@@ -259,7 +260,8 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
             while pos < len(nxt) and t[nxt[pos]] <= b:
                 _max_splat(atlas, maps[int(nxt[pos])])
                 pos += 1
-            I, J = grids.pop(k)
+            s = samples[k]
+            I, J = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
             cmax = np.fmax(suffix.pop(k), atlas.gather(I, J, ("max",))[0])
             sliding.advance(a, b)
             ssum, cnt, risk, last = sliding.gather(I, J, a)

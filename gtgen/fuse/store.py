@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from gtgen.config import RANGES
-from gtgen.format import ArraySpec
+from gtgen.format import ArraySpec, find
 
 FUSED_STORE = "gtgen-fused"
 FUSED_VERSION = 1
@@ -28,4 +28,4 @@ for _r in RANGES:
 
 def spec(path: str) -> ArraySpec:
     """Return the spec of fused-store array ``path``."""
-    return next(s for s in FUSED_ARRAYS if s.path == path)
+    return find(FUSED_ARRAYS, path)

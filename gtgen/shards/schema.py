@@ -14,7 +14,7 @@ from typing import Any
 
 from gtgen.config import RANGES
 from gtgen.errors import StoreError
-from gtgen.format import ArraySpec
+from gtgen.format import ArraySpec, find
 
 SCHEMA_VERSION = 1
 DATASET_STORE = "gtgen-dataset"
@@ -68,10 +68,7 @@ DATASET_ARRAYS += [
 
 def spec(path: str) -> ArraySpec:
     """Return the spec of dataset array ``path``."""
-    for s in DATASET_ARRAYS:
-        if s.path == path:
-            return s
-    raise KeyError(path)
+    return find(DATASET_ARRAYS, path)
 
 
 @dataclass(frozen=True)
