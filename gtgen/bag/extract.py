@@ -25,6 +25,7 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
+from gtgen.format import compressors
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
 from gtgen.progress import track
 
@@ -522,7 +523,7 @@ def _extrinsics(cfg: GtgenConfig, scan: _Scan) -> dict[str, tuple[NDArray, NDArr
 def _create(root, path: str, shape: tuple, chunks: tuple | None = None):
     sp = st.spec(path)
     chunks = chunks or tuple(max(1, s) for s in shape)
-    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value())
+    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value(), compressors=compressors())
 
 
 def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _Plan, extr) -> None:
@@ -589,16 +590,57 @@ def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], sc
             want[f"map.{r}"][int(o)].append(k_i)
         map_arrays[r] = None
     voxels: list[NDArray | None] = [None] * S
-    vox_pts = root.create_array("voxel_points_odom_m", shape=(0, 3), dtype="float32", chunks=(65536, 3), fill_value=0.0)
+    vox_pts = root.create_array("voxel_points_odom_m", shape=(0, 3), dtype="float32", chunks=(65536, 3), fill_value=0.0, compressors=compressors())
     offsets = np.zeros(S + 1, np.int64)
-    next_sample = 0
     centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
     yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
-    ordinal: dict[str, int] = defaultdict(int)
     big = [t for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"]
     img_buf: dict[int, NDArray] = {}
-    layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
     total = sum(bags.topics()[t].count for t in big)
+    with _Writes() as writes:
+        _stream_large(bags, big, total, roles, want, plan, scan, track_, cfg, images, map_arrays, centers, yaws,
+                      voxels, vox_pts, offsets, img_buf, writes, root)
+    _create(root, "samples/voxel_offsets", (S + 1,))[:] = offsets
+    for r in RANGES:
+        if map_arrays[r] is None:
+            raise DecodeError(f"no {r} GridMap could be written")
+        _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
+        _create(root, f"maps/{r}/center_odom_m", centers[r].shape)[:] = centers[r]
+        _create(root, f"maps/{r}/yaw_odom_rad", yaws[r].shape)[:] = yaws[r]
+
+
+class _Writes:
+    """Array writes on two background threads (compression releases the GIL), so that
+    encoding overlaps with reading the bag; at most a few writes are in flight."""
+
+    def __enter__(self) -> _Writes:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pool = ThreadPoolExecutor(max_workers=2)
+        self.pending: list = []
+        return self
+
+    def submit(self, arr, index, value) -> None:
+        self.pending.append(self.pool.submit(arr.__setitem__, index, value))
+        while len(self.pending) > 8:
+            self.pending.pop(0).result()
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            for f in self.pending:
+                f.result()
+        finally:
+            self.pool.shutdown(wait=True)
+
+
+def _stream_large(bags, big, total, roles, want, plan, scan, track_, cfg, images, map_arrays, centers, yaws,
+                  voxels, vox_pts, offsets, img_buf, writes, root) -> None:
+    tp = cfg.topics
+    S = len(plan.t)
+    W, H = cfg.extract.image_width, cfg.extract.image_height
+    layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
+    ordinal: dict[str, int] = defaultdict(int)
+    next_sample = 0
     for topic, msgtype, _, msg, err in track(bags.messages(big), "extract: writing", total=total):
         role = roles[topic]
         o = ordinal[role]
@@ -644,12 +686,12 @@ def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], sc
             center, yaw = _map_to_odom(cfg, scan, g)
             for k_i in targets:
                 for name, layer in zip(("elevation_m", "risk", "confidence"), layer_names):
-                    arr[name][k_i] = g.layers[layer]
+                    writes.submit(arr[name], k_i, g.layers[layer])
                 centers[r][k_i] = center
                 yaws[r][k_i] = yaw
         # flush finished samples in order, so memory holds only a few in flight
         while next_sample < S and next_sample in img_buf and voxels[next_sample] is not None and _images_done(plan, next_sample, ordinal):
-            images[next_sample] = img_buf.pop(next_sample)
+            writes.submit(images, next_sample, img_buf.pop(next_sample))
             pts = voxels[next_sample]
             voxels[next_sample] = None
             offsets[next_sample + 1] = offsets[next_sample] + len(pts)
@@ -658,13 +700,6 @@ def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], sc
             next_sample += 1
     if next_sample != S:
         raise BagError(f"bags ended before every selected message was read ({next_sample} of {S} samples complete)")
-    _create(root, "samples/voxel_offsets", (S + 1,))[:] = offsets
-    for r in RANGES:
-        if map_arrays[r] is None:
-            raise DecodeError(f"no {r} GridMap could be written")
-        _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
-        _create(root, f"maps/{r}/center_odom_m", centers[r].shape)[:] = centers[r]
-        _create(root, f"maps/{r}/yaw_odom_rad", yaws[r].shape)[:] = yaws[r]
 
 
 def _images_done(plan: _Plan, s_i: int, ordinal: dict[str, int]) -> bool:

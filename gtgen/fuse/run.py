@@ -14,6 +14,7 @@ from gtgen.bag import store as drive_store
 from gtgen.config import RANGES, GtgenConfig, save_config
 from gtgen.errors import StoreError
 from gtgen.fuse import store as fs
+from gtgen.format import compressors
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
 from gtgen.geometry import quat_to_yaw
@@ -110,7 +111,7 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) ->
             if sp.path.startswith("samples/"):
                 continue
             n = cfg.grids.get(sp.path.split("/")[1]).size
-            root.create_array(sp.path, shape=(S, n, n), chunks=(1, n, n), dtype=sp.dtype, fill_value=sp.fill_value())
+            root.create_array(sp.path, shape=(S, n, n), chunks=(1, n, n), dtype=sp.dtype, fill_value=sp.fill_value(), compressors=compressors())
         cfg_json = cfg.model_dump(mode="json")
         jobs = [(str(drive_path), str(tmp), r, cfg_json) for r in RANGES]
         if workers > 1:

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.format import dimension_names
+from gtgen.format import compressors, dimension_names
 from gtgen.shards import schema as sc
 
 
@@ -32,11 +32,11 @@ class ShardWriter:
             inner = [int(dims[d.strip()]) if d.strip() in dims else int(d) for d in s.shape.strip("()").split(",") if d.strip()][1:]
             shape = (dims["S"], *inner)
             self.arrays[s.path] = self.root.create_array(
-                s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value(),
+                s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value(), compressors=compressors(),
                 dimension_names=dimension_names(s),
             )
         self.points = self.root.create_array("inputs/voxel_points_m", shape=(0, 3), dtype="float32",
-                                             chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0,
+                                             chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0, compressors=compressors(),
                                              dimension_names=dimension_names(sc.spec("inputs/voxel_points_m")))
         self.offsets = [0]
         self.buffer: list[dict[str, NDArray]] = []
