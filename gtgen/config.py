@@ -169,6 +169,7 @@ class FuseConfig(_Model):
     min_conf: float = Field(0.1, ge=0, le=1, description="elevation used where confidence > this")
     risk_min_conf: float = Field(0.5, ge=0, le=1, description="risk used where confidence >= this")
     tile_cells: int = Field(128, ge=8, le=4096, description="accumulator tile edge [cells]")
+    chunk_samples: int = Field(128, ge=1, description="samples per parallel fusion job (exact: labels do not depend on it)")
 
 
 class DemConfig(_Model):

@@ -65,7 +65,12 @@ def params(cfg: GtgenConfig) -> FuseParams:
     return FuseParams(int(round(f.window_s * 1e9)), int(round(f.past_s * 1e9)), f.min_conf, f.risk_min_conf, f.tile_cells)
 
 
-def _fuse_one_range(drive_path: str, out_path: str, rng: str, cfg_json: dict) -> tuple[str, np.ndarray, dict[str, float], int]:
+def _fuse_part(drive_path: str, out_path: str, rng: str, lo: int, hi: int, cfg_json: dict) -> tuple[str, int, np.ndarray, np.ndarray, int]:
+    """Fuse samples [lo, hi) of range ``rng`` into the open store; a job for any worker.
+
+    Chunks are exact: a chunk reads every map its windows need, and the integer sums
+    make the labels independent of where a chunk starts.
+    """
     import zarr
 
     cfg = GtgenConfig.model_validate(cfg_json)
@@ -73,30 +78,26 @@ def _fuse_one_range(drive_path: str, out_path: str, rng: str, cfg_json: dict) ->
     out = zarr.open_group(out_path, mode="r+")
     grid = cfg.grids.get(rng)
     maps = zarr_map_source(drive, rng, grid.resolution_m)
-    samples = sample_grids(drive, rng, grid.size, grid.resolution_m)
-    arrays = {name: out[f"{grp}/{rng}/{name}"] for grp, names in (("fused", ("elevation_m", "confidence", "risk", "count", "last_dt_s", "region")), ("xracer", ())) for name in names}
-    xr = {name: out[f"xracer/{rng}/{name}"] for name in ("elevation_m", "risk", "confidence")}
+    samples = sample_grids(drive, rng, grid.size, grid.resolution_m)[lo:hi]
+    arrays = {f"fused/{rng}/{n}": n for n in ("elevation", "confidence", "risk", "count", "last_dt_s", "region")}
+    arrays.update({f"xracer/{rng}/{n}": f"xr_{n}" for n in ("elevation", "risk", "confidence")})
+    target = {path: out[path.replace("elevation", "elevation_m")] for path in arrays}
     empty = np.zeros(len(samples), bool)
     regions = np.zeros(4, np.int64)
-    for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng}", total=len(samples)):
-        arrays["elevation_m"][k] = f.elevation
-        arrays["confidence"][k] = f.confidence
-        arrays["risk"][k] = f.risk
-        arrays["count"][k] = f.count
-        arrays["last_dt_s"][k] = f.last_dt_s
-        arrays["region"][k] = f.region
-        xr["elevation_m"][k] = f.xr_elevation
-        xr["risk"][k] = f.xr_risk
-        xr["confidence"][k] = f.xr_confidence
+    for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
+        for path, attr in arrays.items():
+            target[path][lo + k] = getattr(f, attr)
         empty[k] = not f.count.any()
         regions += np.bincount(f.region.ravel(), minlength=4)
-    total = max(int(regions.sum()), 1)
-    cov = {"obs_pc": regions[1] / total, "obs_f": regions[2] / total, "unobs": regions[3] / total}
-    return rng, empty, {k: round(float(v), 4) for k, v in cov.items()}, maps.loads
+    return rng, lo, empty, regions, maps.loads
 
 
 def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) -> FuseResult:
-    """Fuse the maps of drive store ``drive_path`` into the fused store ``out`` (atomically)."""
+    """Fuse the maps of drive store ``drive_path`` into the fused store ``out`` (atomically).
+
+    The work is split into jobs per range and per ``fuse.chunk_samples`` samples, run on
+    ``workers`` processes; the result does not depend on the split.
+    """
     import zarr
 
     drive = drive_store.open_drive(drive_path)
@@ -113,20 +114,29 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) ->
             n = cfg.grids.get(sp.path.split("/")[1]).size
             root.create_array(sp.path, shape=(S, n, n), chunks=(1, n, n), dtype=sp.dtype, fill_value=sp.fill_value(), compressors=compressors())
         cfg_json = cfg.model_dump(mode="json")
-        jobs = [(str(drive_path), str(tmp), r, cfg_json) for r in RANGES]
-        if workers > 1:
+        step = cfg.fuse.chunk_samples
+        # the micro jobs first: they are the long ones
+        jobs = [(str(drive_path), str(tmp), r, lo, min(lo + step, S), cfg_json) for r in RANGES for lo in range(0, S, step)]
+        if workers > 1 and len(jobs) > 1:
             from concurrent.futures import ProcessPoolExecutor
             import multiprocessing as mp
 
             with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as ex:
-                results = list(ex.map(_fuse_one_range, *zip(*jobs)))
+                results = list(ex.map(_fuse_part, *zip(*jobs)))
         else:
-            results = [_fuse_one_range(*j) for j in jobs]
+            results = [_fuse_part(*j) for j in jobs]
         reason = np.zeros(S, np.uint8)
-        for _, empty, _, _ in results:
-            reason[empty] = reasons.NO_FUSED_MAPS
+        counts = {r: np.zeros(4, np.int64) for r in RANGES}
+        loads = {r: 0 for r in RANGES}
+        for r, lo, empty, regions, n_loads in results:
+            reason[lo : lo + len(empty)][empty] = reasons.NO_FUSED_MAPS
+            counts[r] += regions
+            loads[r] += n_loads
         root.create_array("samples/reason", shape=(S,), dtype="uint8", chunks=(S,), fill_value=0)[:] = reason
-        coverage = {r: cov for r, _, cov, _ in results}
+        coverage = {}
+        for r, c in counts.items():
+            tot = max(int(c.sum()), 1)
+            coverage[r] = {k: round(float(c[i] / tot), 4) for i, k in ((1, "obs_pc"), (2, "obs_f"), (3, "unobs"))}
         rejected = {reasons.name(k): int(v) for k, v in zip(*np.unique(reason, return_counts=True)) if k}
         root.attrs.update(drive_store.jsonable({
             "store": fs.FUSED_STORE, "version": fs.FUSED_VERSION, "complete": True,
@@ -138,7 +148,7 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) ->
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return FuseResult(out, S, int((reason == 0).sum()), rejected, coverage, {r: n for r, _, _, n in results})
+    return FuseResult(out, S, int((reason == 0).sum()), rejected, coverage, loads)
 
 
 def open_fused(path: Path):
