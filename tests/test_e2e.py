@@ -38,12 +38,12 @@ def test_a_drive_split_into_two_bags_equals_one_bag(drive_dir, drive_store, cfg,
         np.testing.assert_array_equal(x[name][:], y[name][:], err_msg=name)
 
 
-def test_dem_align_rerun_gives_the_same_dataset(dataset, drive_store, fused_store, cfg, tmp_path):
+def test_dem_align_rerun_with_other_workers_gives_the_same_dataset(dataset, drive_store, fused_store, cfg, tmp_path):
     import zarr
 
     from gtgen.dem.run import run_dem_align
 
-    run_dem_align(drive_store, fused_store, None, tmp_path / "again.zarr", cfg)
+    run_dem_align(drive_store, fused_store, None, tmp_path / "again.zarr", cfg, workers=1)  # fixture: 2 workers
     a = zarr.open_group(str(dataset), mode="r")
     b = zarr.open_group(str(tmp_path / "again.zarr"), mode="r")
     for name in ("labels/short/elevation_m", "labels/micro/region", "meta/T_crs_target", "inputs/voxel_points_m", "rejected/reason"):

@@ -135,12 +135,17 @@ def _raw_min_z(points: NDArray, size: int, res: float) -> NDArray[np.float32]:
     return out.reshape(size, size)
 
 
-def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out: Path, cfg: GtgenConfig) -> AlignResult:
-    """Align the DEM to every fused sample of a drive and write the dataset ``out`` (atomically)."""
+def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out: Path, cfg: GtgenConfig, workers: int = 2) -> AlignResult:
+    """Align the DEM to every fused sample of a drive and write the dataset ``out`` (atomically).
+
+    The ICP chain is sequential; building and writing the accepted samples runs on
+    ``workers`` processes alongside it. The dataset does not depend on ``workers``.
+    """
     drive = drive_store.open_drive(drive_path)
     fused = open_fused(fused_path)
     dem_dir = dem_dir or default_dem_dir(cfg, drive)
-    index = TileIndex.build(dem_dir, cache=out.parent / "dem-index.json")
+    cache = out.parent / "dem-index.json"
+    index = TileIndex.build(dem_dir, cache=cache)
     track_ = PoseTrack(drive["poses/t_ns"][:], drive["poses/pos_odom_m"][:], drive["poses/quat_odom_xyzw"][:],
                        int(cfg.extract.pose_tolerance_s * 1e9))
     fit = _gnss_fit(cfg, drive, track_, index.crs)
@@ -151,7 +156,8 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     tmp = drive_store.partial_path(out)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        result = _align_all(cfg, drive_path, drive, fused, index, fit, dz_dem, tmp)
+        ctx = _Context(str(drive_path), str(fused_path), str(dem_dir), str(cache), str(tmp), cfg.model_dump(mode="json"))
+        result = _align_all(cfg, ctx, drive, fused, index, fit, dz_dem, tmp, workers)
         result.store = out
         drive_store.finalize(tmp, out)
     except BaseException:
@@ -173,30 +179,29 @@ def _check_overlap(index: TileIndex, fit: PlanarFit, track_: PoseTrack, dem_dir:
         )
 
 
-def _align_all(cfg: GtgenConfig, drive_path: Path, drive, fused, index: TileIndex, fit: PlanarFit, dz_dem: float, tmp: Path) -> AlignResult:
+def _align_all(cfg: GtgenConfig, ctx: _Context, drive, fused, index: TileIndex, fit: PlanarFit, dz_dem: float,
+               tmp: Path, workers: int) -> AlignResult:
+    """Run the ICP chain here (each sample starts from the previous accepted placement) and
+    build and write the accepted samples shard by shard on ``workers`` processes meanwhile."""
     S = int(drive["samples/t_ns"].shape[0])
     t_s = drive["samples/t_ns"][:]
     pos = drive["samples/pos_odom_m"][:]
-    quat = drive["samples/quat_odom_xyzw"][:]
-    yaw = quat_to_yaw(quat)
+    yaw = quat_to_yaw(drive["samples/quat_odom_xyzw"][:])
     reason_f = fused["samples/reason"][:]
-    offsets = drive["samples/voxel_offsets"][:]
-    K = drive["calib/K"][:]
-    T_base_cam = drive["calib/T_base_cam"][:]
     W, H = drive.attrs["image_size"]
-    gm, gs = cfg.grids.micro, cfg.grids.short
-    grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
-    writer = ShardWriter(tmp, S, gm.size, gs.size, (H, W))
+    gs = cfg.grids.short
+    Xs, Ys = grid_xy(gs.size, gs.resolution_m)
+    writer = ShardWriter(tmp, S, cfg.grids.micro.size, gs.size, (H, W))
     T_prior = _crs_odom(fit, dz_dem)
     fitness: list[float] = []
     dc = cfg.dem
+    blocks = _Blocks(ctx, workers, writer)
     for k in track(range(S), "dem-align: samples"):
         if reason_f[k]:
             writer.reject(int(t_s[k]), 0, int(reason_f[k]))
             continue
         T_odom_target = yaw_transform(*pos[k], yaw[k])
         T_crs_target = T_prior @ T_odom_target
-        Xs, Ys = grids["short"]
         dem_s = _dem_patch(index, T_crs_target, Xs, Ys)
         reg_s = fused["fused/short/region"][k]
         el_s = fused["fused/short/elevation_m"][k]
@@ -223,35 +228,13 @@ def _align_all(cfg: GtgenConfig, drive_path: Path, drive, fused, index: TileInde
             continue
         T_crs_target = T_crs_target @ res.T
         T_prior = T_crs_target @ invert(T_odom_target)  # warm start for the next sample
-        sample = _sample_arrays(cfg, drive, fused, index, k, T_crs_target, grids)
-        R_ob = quat_to_matrix(quat[k])
-        T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw[k])[:3, :3] @ R_ob, np.zeros(3))
-        pts = drive["voxel_points_odom_m"][offsets[k] : offsets[k + 1]].astype(np.float64)
-        pts_t = ((pts - pos[k]) @ yaw_transform(0, 0, 0, yaw[k])[:3, :3]).astype(np.float32)
-        sample.update({
-            "inputs/images": drive["samples/images"][k],
-            "inputs/K": K,
-            "inputs/T_base_cam": T_base_cam,
-            "inputs/T_target_base": T_target_base,
-            "inputs/raw_elevation_m": _raw_min_z(pts_t, gs.size, gs.resolution_m),
-            "meta/t_ns": np.int64(t_s[k]),
-            "meta/drive": np.uint16(0),
-            "meta/pos_odom_m": pos[k],
-            "meta/yaw_odom_rad": np.float64(yaw[k]),
-            "meta/crs_en_m": T_crs_target[:2, 3],
-            "meta/T_crs_target": T_crs_target,
-            "meta/icp_fitness": np.float32(res.fitness),
-            "meta/icp_rmse_m": np.float32(res.rmse_m),
-            "meta/icp_correction": np.array([res.T[0, 3], res.T[1, 3], res.T[2, 3], np.arctan2(res.T[1, 0], res.T[0, 0])], np.float32),
-            "meta/split": np.uint8(_split(*T_crs_target[:2, 3], cfg)),
-        })
-        writer.add(sample, pts_t)
+        blocks.add((k, T_crs_target, res.fitness, res.rmse_m, res.T))
+    blocks.finish()
     rej = [r[2] for r in writer.rejected]
-    splits = {}
     attrs = drive_store.jsonable({
         "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True,
         "gtgen_version": __version__, "config": cfg.model_dump(mode="json"),
-        "drives": [{"drive_store": str(drive_path.resolve()), "bags": drive.attrs.get("bags", [])}],
+        "drives": [{"drive_store": str(Path(ctx.drive_path).resolve()), "bags": drive.attrs.get("bags", [])}],
         "crs": index.crs, "reasons": reasons.REASONS, "splits": sc.SPLITS,
         "alignment": {"gnss_yaw_rad": fit.yaw, "gnss_tx_m": fit.tx, "gnss_ty_m": fit.ty, "gnss_rms_m": fit.rms_m,
                       "gnss_used": fit.n_used, "gnss_outliers": fit.n_outliers, "dz_dem_m": dz_dem,
@@ -260,6 +243,7 @@ def _align_all(cfg: GtgenConfig, drive_path: Path, drive, fused, index: TileInde
     })
     n = writer.close(attrs)
     save_config(cfg, tmp / "gtgen-config.yaml")
+    splits = {}
     if n:
         sp = writer.root["meta/split"][:]
         splits = {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}
@@ -267,7 +251,115 @@ def _align_all(cfg: GtgenConfig, drive_path: Path, drive, fused, index: TileInde
                        fit.dz_gnss - dz_dem, fitness, splits)
 
 
-def _sample_arrays(cfg: GtgenConfig, drive, fused, index: TileIndex, k: int, T_crs_target: NDArray, grids) -> dict[str, NDArray]:
+@dataclass(frozen=True)
+class _Context:
+    """What a block-building worker needs to open everything itself (picklable)."""
+
+    drive_path: str
+    fused_path: str
+    dem_dir: str
+    index_cache: str
+    out_path: str
+    cfg_json: dict
+
+
+class _Blocks:
+    """Accepted samples, built and written one shard at a time, in worker processes."""
+
+    def __init__(self, ctx: _Context, workers: int, writer: ShardWriter) -> None:
+        self.ctx, self.writer = ctx, writer
+        self.items: list[tuple] = []
+        self.start = 0
+        self.futures: list = []
+        self.pool = None
+        if workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+    def add(self, item: tuple) -> None:
+        self.items.append(item)
+        if len(self.items) == sc.SAMPLES_PER_SHARD:
+            self._submit()
+
+    def _submit(self) -> None:
+        if not self.items:
+            return
+        args = (self.ctx, self.start, self.items)
+        if self.pool is None:
+            self.writer.add_block(_build_block(*args))
+        else:
+            self.futures.append(self.pool.submit(_build_block, *args))
+            # collect finished blocks in order, so memory holds only a few
+            while self.futures and (self.futures[0].done() or len(self.futures) > 4):
+                self.writer.add_block(self.futures.pop(0).result())
+        self.start += len(self.items)
+        self.items = []
+
+    def finish(self) -> None:
+        try:
+            self._submit()
+            for f in self.futures:
+                self.writer.add_block(f.result())
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+_OPEN: dict[tuple[str, str, str], tuple] = {}
+
+
+def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[np.float32]]:
+    """Build the accepted samples ``items`` and write them from dataset index ``start``;
+    return their voxel points in the target frame (appended in order by the caller)."""
+    import zarr
+
+    from gtgen.shards.writer import write_block
+
+    key = (ctx.drive_path, ctx.fused_path, ctx.out_path)
+    if key not in _OPEN:
+        _OPEN.clear()
+        _OPEN[key] = (zarr.open_group(ctx.drive_path, mode="r"), zarr.open_group(ctx.fused_path, mode="r"),
+                      TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache)), GtgenConfig.model_validate(ctx.cfg_json))
+    drive, fused, index, cfg = _OPEN[key]
+    gs = cfg.grids.short
+    grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
+    offsets = drive["samples/voxel_offsets"][:]
+    K, T_base_cam = drive["calib/K"][:], drive["calib/T_base_cam"][:]
+    samples, points = [], []
+    for k, T_crs_target, fit_k, rmse_k, T_corr in items:
+        pos = drive["samples/pos_odom_m"][k]
+        quat = drive["samples/quat_odom_xyzw"][k]
+        yaw = float(quat_to_yaw(quat))
+        sample = _sample_arrays(fused, index, k, T_crs_target, grids)
+        T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
+        pts = drive["voxel_points_odom_m"][offsets[k] : offsets[k + 1]].astype(np.float64)
+        pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
+        sample.update({
+            "inputs/images": drive["samples/images"][k],
+            "inputs/K": K,
+            "inputs/T_base_cam": T_base_cam,
+            "inputs/T_target_base": T_target_base,
+            "inputs/raw_elevation_m": _raw_min_z(pts_t, gs.size, gs.resolution_m),
+            "meta/t_ns": np.int64(drive["samples/t_ns"][k]),
+            "meta/drive": np.uint16(0),
+            "meta/pos_odom_m": pos,
+            "meta/yaw_odom_rad": np.float64(yaw),
+            "meta/crs_en_m": T_crs_target[:2, 3],
+            "meta/T_crs_target": T_crs_target,
+            "meta/icp_fitness": np.float32(fit_k),
+            "meta/icp_rmse_m": np.float32(rmse_k),
+            "meta/icp_correction": np.array([T_corr[0, 3], T_corr[1, 3], T_corr[2, 3], np.arctan2(T_corr[1, 0], T_corr[0, 0])], np.float32),
+            "meta/split": np.uint8(_split(*T_crs_target[:2, 3], cfg)),
+        })
+        samples.append(sample)
+        points.append(pts_t)
+    write_block(Path(ctx.out_path), start, samples)
+    return points
+
+
+def _sample_arrays(fused, index: TileIndex, k: int, T_crs_target: NDArray, grids) -> dict[str, NDArray]:
     out: dict[str, NDArray] = {}
     for r in RANGES:
         X, Y = grids[r]

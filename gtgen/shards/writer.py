@@ -55,6 +55,16 @@ class ShardWriter:
         if len(self.buffer) == sc.SAMPLES_PER_SHARD:
             self._flush()
 
+    def add_block(self, points: list[NDArray[np.float32]]) -> None:
+        """Account for a whole shard of samples already written by ``write_block`` (in order)."""
+        if self.buffer:
+            raise RuntimeError("add_block after add: blocks must stay shard-aligned")
+        for p in points:
+            if len(p):
+                self.points.append(np.asarray(p, np.float32).reshape(-1, 3), axis=0)
+            self.offsets.append(self.offsets[-1] + len(p))
+        self.n += len(points)
+
     def reject(self, t_ns: int, drive: int, reason: int, fitness: float = float("nan"), rmse: float = float("nan")) -> None:
         """Record a rejected sample."""
         self.rejected.append((t_ns, drive, reason, fitness, rmse))
@@ -87,3 +97,19 @@ class ShardWriter:
                 arr[:] = np.asarray(col, dtype=dtype)
         self.root.attrs.update(attrs)
         return self.n
+
+
+def write_block(path: Path, start: int, samples: list[dict[str, NDArray]]) -> None:
+    """Write consecutive samples from index ``start`` (a whole shard) into the store at ``path``.
+
+    Workers call this on their own shards, so no shard is written twice or concurrently.
+    """
+    import zarr
+
+    if start % sc.SAMPLES_PER_SHARD:
+        raise ValueError(f"block start {start} is not shard-aligned ({sc.SAMPLES_PER_SHARD})")
+    root = zarr.open_group(str(path), mode="r+")
+    for s in sc.DATASET_ARRAYS:
+        if s.path.startswith(("rejected/", "inputs/voxel_")):
+            continue
+        root[s.path][start : start + len(samples)] = np.stack([x[s.path] for x in samples])
