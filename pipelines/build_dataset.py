@@ -137,7 +137,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
         run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=1)
         res.seconds["fuse"] = time.perf_counter() - t
         t = time.perf_counter()
-        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg)
+        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=1)
         res.seconds["dem-align"] = time.perf_counter() - t
     except GtgenError as err:
         res.error = f"{type(err).__name__}: {err}"
