@@ -182,12 +182,23 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
             results[name] = done
         else:
             todo.append((name, [str(b) for b in bags], str(ddir), str(work), cfg_json, digest))
+    # drives are merged in their order as soon as they (and all before them) are done,
+    # so the merge overlaps with the drives still running
+    merger = _Merger(out, cfg)
+    order = list(drives)
+
+    def merge_ready() -> None:
+        while merger.next < len(order) and order[merger.next] in results:
+            merger.add(work, results[order[merger.next]])
+
+    merge_ready()
     for res, digest in _execute(todo, workers, scheduler):
         if res.ok:
             _mark_done(work / res.name, digest, res)
         results[res.name] = res
+        merge_ready()
     ordered = [results[n] for n in drives]
-    n, split = _merge([work / r.name / "dataset.zarr" for r in ordered if r.ok], [r.name for r in ordered if r.ok], out, cfg, ordered)
+    n, split = merger.close(ordered)
     return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
 
 
@@ -216,51 +227,80 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
             yield fut.result(), futs[fut]
 
 
-def _merge(stores: list[Path], names: list[str], out: Path, cfg: GtgenConfig, results: list[DriveResult]) -> tuple[int, dict[str, int]]:
-    """Write ``out/dataset.zarr`` holding every drive's samples in drive order."""
-    import importlib.metadata as md
+class _Merger:
+    """Appends each finished drive's samples to ``out/dataset.zarr`` (written atomically),
+    reading whole shards at a time."""
 
-    import zarr
+    FIRST_CAPACITY = 1024  # samples; the writer grows the arrays as drives arrive
 
-    from gtgen.bag.store import finalize, jsonable, partial_path
-    from gtgen.shards import schema as sc
-    from gtgen.shards.writer import ShardWriter
+    def __init__(self, out: Path, cfg: GtgenConfig) -> None:
+        from gtgen.bag.store import partial_path
 
-    target = out / "dataset.zarr"
-    tmp = partial_path(target)
-    shutil.rmtree(tmp, ignore_errors=True)
-    groups = [zarr.open_group(str(s), mode="r") for s in stores]
-    total = sum(int(g["meta/t_ns"].shape[0]) for g in groups)
-    if not groups:
-        raise GtgenError("every drive failed: " + "; ".join(f"{r.name}: {r.error}" for r in results))
-    W, H = groups[0].attrs["image_size"]
-    writer = ShardWriter(tmp, total, cfg.grids.micro.size, cfg.grids.short.size, (H, W))
-    names_arr = [s.path for s in sc.DATASET_ARRAYS if s.path in writer.arrays]
-    drives_attr = []
-    for d, (g, name) in enumerate(zip(groups, names)):
+        self.out, self.cfg = out, cfg
+        self.target = out / "dataset.zarr"
+        self.tmp = partial_path(self.target)
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        self.writer = None
+        self.next = 0
+        self.drives_attr: list[dict] = []
+        self.first_attrs: dict | None = None
+
+    def add(self, work: Path, res: DriveResult) -> None:
+        import zarr
+
+        from gtgen.shards import schema as sc
+        from gtgen.shards.writer import ShardWriter
+
+        self.next += 1
+        if not res.ok:
+            return
+        g = zarr.open_group(str(work / res.name / "dataset.zarr"), mode="r")
+        a = g.attrs.asdict()
+        if self.writer is None:
+            W, H = a["image_size"]
+            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
+            self.first_attrs = a
+        d = len(self.drives_attr)
+        names = list(self.writer.arrays)
         S = int(g["meta/t_ns"].shape[0])
         off = g["inputs/voxel_offsets"][:]
-        for k in track(range(S), f"build: merging {name}"):
-            sample = {p: g[p][k] for p in names_arr}
-            sample["meta/drive"] = np.uint16(d)
-            writer.add(sample, g["inputs/voxel_points_m"][off[k] : off[k + 1]])
+        B = sc.SAMPLES_PER_SHARD
+        for a0 in track(range(0, S, B), f"build: merging {res.name}"):
+            b0 = min(a0 + B, S)
+            block = {p: g[p][a0:b0] for p in names}
+            pts = g["inputs/voxel_points_m"][off[a0] : off[b0]]
+            for k in range(b0 - a0):
+                sample = {p: block[p][k] for p in names}
+                sample["meta/drive"] = np.uint16(d)
+                self.writer.add(sample, pts[off[a0 + k] - off[a0] : off[a0 + k + 1] - off[a0]])
         for t, rs, f, r in zip(g["rejected/t_ns"][:], g["rejected/reason"][:], g["rejected/icp_fitness"][:], g["rejected/icp_rmse_m"][:]):
-            writer.reject(int(t), d, int(rs), float(f), float(r))
-        a = g.attrs.asdict()
-        drives_attr.append({"name": name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})
-    versions = {p: md.version(p) for p in ("numpy", "zarr", "rosbags", "rasterio", "pyproj", "open3d-cpu", "torch") if _has(p)}
-    attrs = jsonable({
-        "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True, "gtgen_version": __version__,
-        "config": cfg.model_dump(mode="json"), "drives": drives_attr, "crs": groups[0].attrs["crs"],
-        "reasons": reasons.REASONS, "splits": sc.SPLITS, "image_size": [W, H], "cameras": groups[0].attrs.get("cameras"),
-        "alignment": groups[0].attrs["alignment"],
-        "provenance": {"dependencies": versions, "units": [r.__dict__ for r in results]},
-    })
-    n = writer.close(attrs)
-    save_config(cfg, tmp / "gtgen-config.yaml")
-    finalize(tmp, target)
-    sp = zarr.open_group(str(target), mode="r")["meta/split"][:]
-    return n, {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}
+            self.writer.reject(int(t), d, int(rs), float(f), float(r))
+        self.drives_attr.append({"name": res.name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})
+
+    def close(self, results: list[DriveResult]) -> tuple[int, dict[str, int]]:
+        import importlib.metadata as md
+
+        import zarr
+
+        from gtgen.bag.store import finalize, jsonable
+        from gtgen.shards import schema as sc
+
+        if self.writer is None:
+            raise GtgenError("every drive failed: " + "; ".join(f"{r.name}: {r.error}" for r in results))
+        a = self.first_attrs
+        versions = {p: md.version(p) for p in ("numpy", "zarr", "rosbags", "rasterio", "pyproj", "open3d-cpu", "torch") if _has(p)}
+        attrs = jsonable({
+            "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True, "gtgen_version": __version__,
+            "config": self.cfg.model_dump(mode="json"), "drives": self.drives_attr, "crs": a["crs"],
+            "reasons": reasons.REASONS, "splits": sc.SPLITS, "image_size": a["image_size"], "cameras": a.get("cameras"),
+            "alignment": a["alignment"],
+            "provenance": {"dependencies": versions, "units": [r.__dict__ for r in results]},
+        })
+        n = self.writer.close(attrs)
+        save_config(self.cfg, self.tmp / "gtgen-config.yaml")
+        finalize(self.tmp, self.target)
+        sp = zarr.open_group(str(self.target), mode="r")["meta/split"][:]
+        return n, {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}
 
 
 def _has(pkg: str) -> bool:

@@ -15,7 +15,8 @@ from gtgen.shards import schema as sc
 class ShardWriter:
     """Buffers samples and writes each shard of ``SAMPLES_PER_SHARD`` samples once.
 
-    Arrays are created at ``max_samples`` and shrunk to the samples written on close.
+    Arrays are created at ``max_samples``, grown if more come, and shrunk to the samples
+    written on close.
     """
 
     def __init__(self, path: Path, max_samples: int, micro: int, short: int, image_hw: tuple[int, int]) -> None:
@@ -59,6 +60,7 @@ class ShardWriter:
         """Account for a whole shard of samples already written by ``write_block`` (in order)."""
         if self.buffer:
             raise RuntimeError("add_block after add: blocks must stay shard-aligned")
+        self._ensure(self.n + len(points))
         for p in points:
             if len(p):
                 self.points.append(np.asarray(p, np.float32).reshape(-1, 3), axis=0)
@@ -69,10 +71,19 @@ class ShardWriter:
         """Record a rejected sample."""
         self.rejected.append((t_ns, drive, reason, fitness, rmse))
 
+    def _ensure(self, n: int) -> None:
+        """Grow the sample axis (metadata only) when more samples come than were expected."""
+        cap = next(iter(self.arrays.values())).shape[0]
+        if n > cap:
+            new = max(n, 2 * cap)
+            for arr in self.arrays.values():
+                arr.resize((new, *arr.shape[1:]))
+
     def _flush(self) -> None:
         if not self.buffer:
             return
         a, b = self.n, self.n + len(self.buffer)
+        self._ensure(b)
         for name, arr in self.arrays.items():
             arr[a:b] = np.stack([s[name] for s in self.buffer])
         self.n = b
