@@ -114,12 +114,6 @@ def apply(T: NDArray, pts: NDArray) -> F64:
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
-def gravity_aligned(T: NDArray) -> F64:
-    """Return T with roll and pitch removed: same translation, rotation yaw-only."""
-    yaw = np.arctan2(T[1, 0], T[0, 0])
-    return yaw_transform(T[0, 3], T[1, 3], T[2, 3], yaw)
-
-
 def cell_centers(size: int, resolution_m: float) -> F64:
     """Return the (size,) cell-centre coordinates [m] of a vehicle-centric grid axis."""
     return -0.5 * size * resolution_m + (np.arange(size) + 0.5) * resolution_m

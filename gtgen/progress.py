@@ -12,18 +12,10 @@ T = TypeVar("T")
 
 log = logging.getLogger("gtgen")
 
-_enabled = True
-
-
-def set_enabled(enabled: bool) -> None:
-    """Turn progress bars on or off for this process (the CLI's ``--quiet``)."""
-    global _enabled
-    _enabled = enabled
-
 
 @contextmanager
 def _bar(total: float | None, desc: str) -> Iterator[object]:
-    if not _enabled or not sys.stderr.isatty():
+    if not sys.stderr.isatty():
         yield None
         return
     from rich.progress import (

@@ -9,7 +9,7 @@ import numpy as np
 
 from gtgen import reasons
 from gtgen.config import RANGES, GtgenConfig
-from gtgen.geometry import grid_xy, invert, yaw_transform
+from gtgen.geometry import grid_xy, yaw_transform
 from gtgen.shards.schema import open_dataset
 
 REGIONS = {1: "obs_pc", 2: "obs_f", 3: "unobs"}
@@ -82,7 +82,6 @@ def _truth_errors(g, cfg: GtgenConfig, truth, idx: np.ndarray) -> dict:
     pos = g["meta/pos_odom_m"][:]
     yaw = g["meta/yaw_odom_rad"][:]
     Tct = g["meta/T_crs_target"][:]
-    err = {r: {n: [] for n in ("label", "xracer", "fused_single_pairs", "risk_sq")} for r in RANGES}
     acc = {r: {reg: {"elev_abs": 0.0, "n": 0, "risk_sq": 0.0, "nr": 0, "xr_abs": 0.0, "nx": 0} for reg in REGIONS.values()} for r in RANGES}
     fused_vs_single = {r: {"fused_abs": 0.0, "single_abs": 0.0, "n": 0} for r in RANGES}
     h_err, v_err, h_err_far = [], [], []

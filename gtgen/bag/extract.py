@@ -573,7 +573,6 @@ def _map_to_odom(cfg: GtgenConfig, scan: _Scan, g: GridMapData) -> tuple[NDArray
 
 
 def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack, plan: _Plan) -> None:
-    tp = cfg.topics
     S = len(plan.t)
     W, H = cfg.extract.image_width, cfg.extract.image_height
     images = _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 4, H, W, 3))

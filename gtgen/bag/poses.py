@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import PoseError
-from gtgen.geometry import make_transform, quat_to_matrix, quat_to_yaw, slerp
+from gtgen.geometry import make_transform, quat_to_matrix, slerp
 
 
 @dataclass
@@ -80,10 +80,6 @@ class PoseTrack:
         """Return T_odom_base (N, 4, 4) at times ``t_ns`` (strict)."""
         pos, quat = self.interpolate(t_ns)
         return make_transform(quat_to_matrix(quat), pos)
-
-    def yaw(self, t_ns: NDArray) -> NDArray[np.float64]:
-        """Return the base yaw [rad] in odom at times ``t_ns`` (strict)."""
-        return quat_to_yaw(self.interpolate(t_ns)[1])
 
     def distance(self) -> NDArray[np.float64]:
         """Return the cumulative xy travel [m] at each pose."""

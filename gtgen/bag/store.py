@@ -12,7 +12,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from gtgen.config import CAMERAS, RANGES
+from gtgen.config import RANGES
 from gtgen.errors import StoreError
 from gtgen.format import ArraySpec, find
 
@@ -104,5 +104,3 @@ def jsonable(obj: Any) -> Any:
     """Return ``obj`` with numpy scalars and paths turned into JSON types."""
     return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
-
-CAMERA_ORDER = CAMERAS

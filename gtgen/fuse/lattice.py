@@ -176,11 +176,3 @@ class Atlas:
             self.free.append(self.slots.pop(k))
         return len(old)
 
-    def clear(self) -> None:
-        """Release every tile."""
-        self.free.extend(self.slots.values())
-        self.slots.clear()
-
-    @property
-    def n_tiles(self) -> int:
-        return len(self.slots)

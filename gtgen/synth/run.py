@@ -136,7 +136,6 @@ def run_synth(cfg: GtgenConfig, out: Path, overwrite: bool = False) -> SynthResu
 
 def _write_drive(cfg: GtgenConfig, tmp: Path) -> SynthResult:
     sc = cfg.synth
-    tp = cfg.topics
     world = SynthWorld(sc)
     from gtgen.synth.dem import write_dem_tiles
 

@@ -44,7 +44,6 @@ def lidar_view(cfg: SynthConfig, terrain: Terrain, origin: NDArray) -> LidarView
     V = origin[1] + np.sin(az)[:, None] * ranges[None, :]
     ground, surface = terrain.sample(U, V, ("ground", "surface"))
     ang_s = (surface - origin[2]) / ranges
-    ang_g = (ground - origin[2]) / ranges
     prior = np.maximum.accumulate(ang_s, axis=1)
     prior = np.concatenate([np.full((N_AZ, 1), -np.inf, np.float32), prior[:, :-1]], axis=1)
     in_fov = ang_s >= MIN_ELEV_ANGLE

@@ -93,7 +93,7 @@ class PointPillars(nn.Module):
     def __init__(self, tc: TrainConfig, bev_size: int, bev_res: float) -> None:
         super().__init__()
         c = tc.pillar_channels
-        self.pfn = nn.Sequential(nn.Linear(7, c), nn.LayerNorm(c), nn.ReLU())
+        self.pfn = nn.Sequential(nn.Linear(8, c), nn.LayerNorm(c), nn.ReLU())  # xyz, offset to pillar mean, offset to pillar centre
         self.cnn = nn.Sequential(ResBlock(c, c), ResBlock(c, c))
         self.bev_size, self.bev_res, self.C = bev_size, bev_res, c
         self.max_per_pillar = tc.max_points_per_pillar
@@ -123,7 +123,7 @@ class PointPillars(nn.Module):
         mean = torch.zeros(ncell, 3, device=points.device).index_add_(0, flat, pts) / cnt.clamp(min=1)[:, None]
         cx = ((flat // S) % S).to(points.dtype) * self.bev_res - L / 2 + self.bev_res / 2
         cy = (flat % S).to(points.dtype) * self.bev_res - L / 2 + self.bev_res / 2
-        feats = torch.cat([pts, pts - mean[flat], (pts[:, 0] - cx)[:, None]], 1)
+        feats = torch.cat([pts, pts - mean[flat], (pts[:, 0] - cx)[:, None], (pts[:, 1] - cy)[:, None]], 1)
         h = self.pfn(feats)
         bev = torch.zeros(ncell, self.C, device=points.device, dtype=h.dtype)
         if len(flat):
