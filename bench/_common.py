@@ -44,6 +44,16 @@ def drive(duration_s: float, seed: int = 0, fmt: str = "mcap") -> Path:
     return out
 
 
+def fresh_workspace(name: str) -> Path:
+    """Return an empty folder ``bench/out/<name>`` (removed and made anew)."""
+    import shutil
+
+    ws = OUT / name
+    shutil.rmtree(ws, ignore_errors=True)
+    ws.mkdir(parents=True)
+    return ws
+
+
 def dir_size_mb(p: Path) -> float:
     return sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) / 2**20 if p.is_dir() else p.stat().st_size / 2**20
 
@@ -52,4 +62,4 @@ def header(title: str) -> None:
     print(f"== {title} ({os.cpu_count()} cores) ==")
 
 
-__all__ = ["OUT", "PY", "run_measured", "drive", "dir_size_mb", "header", "time", "resource"]
+__all__ = ["OUT", "PY", "run_measured", "drive", "fresh_workspace", "dir_size_mb", "header", "time", "resource"]

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import shutil
-
-from _common import OUT, drive, header, run_measured
+from _common import drive, fresh_workspace, header, run_measured
 
 ITERATE = """
 import sys
@@ -21,9 +19,7 @@ if __name__ == "__main__":
     rss = {}
     for dur in (30, 120):
         d = drive(dur)
-        ws = OUT / f"ws_extract_{dur}"
-        shutil.rmtree(ws, ignore_errors=True)
-        ws.mkdir()
+        ws = fresh_workspace(f"ws_extract_{dur}")
         t_ex, rss[dur] = run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
         t_it, _ = run_measured(["-c", ITERATE.replace("sys.argv[1]", repr(str(d / "drive.mcap")))])
         print(f"{dur:4d} s drive: extract {t_ex:.1f} s; rosbags iterate+deserialize {t_it:.1f} s; "

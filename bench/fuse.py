@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import shutil
-
-from _common import OUT, drive, header, run_measured
+from _common import drive, fresh_workspace, header, run_measured
 
 NAIVE = """
 import time, itertools, sys
@@ -28,9 +26,7 @@ print(tn / n, tf / len(samples))
 if __name__ == "__main__":
     header("bench/fuse.py")
     d = drive(120)
-    ws = OUT / "ws_fuse"
-    shutil.rmtree(ws, ignore_errors=True)
-    ws.mkdir()
+    ws = fresh_workspace("ws_fuse")
     run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
     import subprocess, sys
 
@@ -45,9 +41,7 @@ if __name__ == "__main__":
     rss = {}
     for dur in (60, 240):
         dd = drive(dur)
-        w2 = OUT / f"ws_fuse_{dur}"
-        shutil.rmtree(w2, ignore_errors=True)
-        w2.mkdir()
+        w2 = fresh_workspace(f"ws_fuse_{dur}")
         run_measured(["extract", str(dd / "drive.mcap"), "-o", str(w2 / "drive.zarr")])
         _, rss[dur] = run_measured(["fuse", str(w2 / "drive.zarr"), "--workers", "1", "-o", str(w2 / "fused.zarr")])
     print(f"fuse peak RSS: 60 s drive {rss[60]:.0f} MiB, 240 s drive {rss[240]:.0f} MiB: ratio {rss[240] / rss[60]:.2f} (goal: <= 2 GiB, flat)")

@@ -2,18 +2,14 @@
 
 from __future__ import annotations
 
-import shutil
-
 import zarr
 
-from _common import OUT, drive, header, run_measured
+from _common import drive, fresh_workspace, header, run_measured
 
 if __name__ == "__main__":
     header("bench/pipeline.py")
     d = drive(120)
-    ws = OUT / "ws_pipeline"
-    shutil.rmtree(ws, ignore_errors=True)
-    ws.mkdir()
+    ws = fresh_workspace("ws_pipeline")
     t = {}
     t["extract"], _ = run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
     t["fuse"], _ = run_measured(["fuse", str(ws / "drive.zarr")])

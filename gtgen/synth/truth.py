@@ -9,18 +9,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.geometry import yaw_transform
-from gtgen.synth.world import SynthWorld
 
 
 class Truth:
     """A synth drive's truth, rebuilt from ``truth/`` beside its bags."""
 
     def __init__(self, folder: Path) -> None:
-        from gtgen.config import SynthConfig
+        from gtgen.synth.run import load_world
 
         meta = json.loads((folder / "truth.json").read_text())
         self.meta = meta
-        self.world = SynthWorld(SynthConfig.model_validate(meta["synth"]))
+        self.world = load_world(folder.parent)
         traj = np.load(folder / "trajectory.npz")
         self.t_ns = traj["t_ns"]
         self.pos_w = traj["pos_world_m"]
