@@ -189,3 +189,34 @@ def test_unwritable_out(tmp_path):
     (ro / "x").write_text("occupied")
     p = run_cli("synth", ro, "--duration", "1")
     assert p.returncode != 0 and "exists and is not empty" in p.stderr
+
+
+def test_fast_sampling_and_marching_equal_their_oracles(drive_dir, cfg):
+    """Pooled tile sampling and block marching give the same numbers as the naive forms."""
+    from gtgen.synth.sensors import RenderRaster, march, march_naive
+
+    world = load_world(drive_dir)
+    terrain = world.terrain
+    rng = np.random.default_rng(0)
+    c = world.path.uv[len(world.path.uv) // 2]
+    ang = rng.uniform(0, np.pi)
+    i, j = np.meshgrid(np.arange(-150, 150) * 0.2, np.arange(-120, 120) * 0.2, indexing="ij")
+    u = c[0] + np.cos(ang) * i - np.sin(ang) * j
+    v = c[1] + np.sin(ang) * i + np.cos(ang) * j
+    fast = terrain.sample(u, v, ("ground", "risk", "surface"))
+    slow = terrain.sample_grouped(u, v, ("ground", "risk", "surface"))
+    assert all(np.array_equal(a, b) for a, b in zip(fast, slow))
+    # on tile nodes the bilinear sample is the exact evaluation
+    g = terrain.eval_grid(c[0] - 3.0, c[1] - 3.0, 0.1, 20, 20)
+    uu, vv = np.meshgrid(c[0] - 3.0 + (np.arange(20) + 0.5) * 0.1, c[1] - 3.0 + (np.arange(20) + 0.5) * 0.1, indexing="ij")
+    assert np.abs(terrain.sample(uu, vv, ("ground",))[0] - g["ground"]).max() < 2e-3
+
+    raster = RenderRaster(terrain, (c[0] - 200, c[1] - 200, c[0] + 200, c[1] + 200))
+    o = np.array([200.0, 200.0, terrain.sample(np.array([c[0]]), np.array([c[1]]))[0][0] + 1.7], np.float32)
+    d = rng.normal(size=(3000, 3)).astype(np.float32)
+    d[:, 2] = np.abs(d[:, 2]) * rng.choice([-0.3, 0.05], 3000)  # mostly down, some above the horizon
+    rays = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    k, hit = march(raster, o, rays)
+    k0, hit0 = march_naive(raster, o, rays)
+    assert np.array_equal(hit, hit0) and np.array_equal(k, k0)
+    assert 0 < hit.sum() < len(hit)  # both hits and sky rays are exercised
