@@ -117,6 +117,7 @@ def synth(
 def extract(
     bags: list[Path] = typer.Argument(..., help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
     out: Path = typer.Option(WORKSPACE / "drive.zarr", "-o", "--out", help="drive store to write"),
+    workers: int = typer.Option(2, min=1, help="processes reading the bags (record-time slices)"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Read a drive's bags into a per-drive store: poses, GNSS, maps, images, voxel maps.
@@ -131,7 +132,7 @@ def extract(
     from gtgen.bag.extract import run_extract
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    res = run_extract(bags, out, cfg)
+    res = run_extract(bags, out, cfg, workers=workers)
     from rich.table import Table
 
     t = Table(title="gtgen extract: topics")

@@ -131,7 +131,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
     res = DriveResult(name, ok=False)
     try:
         t = time.perf_counter()
-        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg)
+        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=1)
         res.seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
         run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=1)

@@ -252,3 +252,19 @@ def test_cli_extract_summary_and_missing_file(drive_dir, tmp_path):
     assert (tmp_path / "gtgen_ws" / "drive.zarr").is_dir()  # the workspace default
     p = run_cli("extract", tmp_path / "nope.mcap", cwd=tmp_path)
     assert p.returncode == 1 and p.stderr.strip() == f"error: bag '{tmp_path / 'nope.mcap'}' does not exist"
+
+
+def test_store_does_not_depend_on_workers_or_slices(drive_dir, drive_store, cfg, tmp_path):
+    """Record-time slices on a process pool give the very arrays of one in-process pass."""
+    one, many = tmp_path / "one.zarr", tmp_path / "many.zarr"
+    run_extract([drive_dir / "drive.mcap"], one, cfg, workers=1, slices=1)
+    run_extract([drive_dir / "drive.mcap"], many, cfg, workers=1, slices=7)
+
+    def arrays(path):
+        return {k: v[...] for k, v in zarr.open_group(str(path), mode="r").members(max_depth=None) if isinstance(v, zarr.Array)}
+
+    a, b, c = arrays(one), arrays(many), arrays(drive_store)  # drive_store: 2 workers
+    assert a.keys() == b.keys() == c.keys() and len(a) > 20
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
+        assert np.array_equal(a[k], c[k], equal_nan=a[k].dtype.kind == "f"), k

@@ -1,9 +1,12 @@
 """``gtgen extract``: bags -> a time-indexed per-drive store.
 
-Two streaming passes. The first reads the small topics (odometry, TF, GNSS, camera
-info) whole and only the header stamps of the large ones (maps, voxel map, images);
-it fixes the sample times and which large messages to keep. The second decodes just
-those and writes them into the store by index. Memory stays flat in drive length.
+Two streaming passes, each split into record-time slices that run on ``workers``
+processes. The first reads the small topics (odometry, TF, GNSS, camera info) whole
+and notes the header stamps of the large ones (maps, voxel map, images); the merged
+slices fix the sample times and which large messages to keep. The second decodes just
+those and writes them into the store by index (one chunk per image and per map, so
+slices never write the same chunk). A slice spans at most ``SLICE_S`` of the bag, so
+memory stays flat in drive length; the store does not depend on the split.
 """
 
 from __future__ import annotations
@@ -139,6 +142,35 @@ class _Scan:
     frames: dict[str, str] = field(default_factory=dict)
     stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
     map_meta: dict[str, list[tuple[int, bool]]] = field(default_factory=lambda: defaultdict(list))
+    map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution)
+
+    def counts(self) -> dict[str, int]:
+        """Messages per role in this scan (decode failures included): the ordinal span."""
+        return {s.role: s.count for s in self.stats.values()}
+
+    def extend(self, other: _Scan) -> None:
+        """Append the scan of the next slice."""
+        for t, o in other.stats.items():
+            s = self.stats[t]
+            s.count += o.count
+            s.decode_failures += o.decode_failures
+            s.first_error = s.first_error or o.first_error
+            s.stamps.extend(o.stamps)
+            s.record_skew_max_s = max(s.record_skew_max_s, o.record_skew_max_s)
+        self.odom.extend(other.odom)
+        self.tf_dyn.extend(other.tf_dyn)
+        self.static.update(other.static)
+        self.gnss.extend(other.gnss)
+        for k, v in other.info.items():
+            self.info.setdefault(k, v)
+        for k, v in other.frames.items():
+            self.frames.setdefault(k, v)
+        for k, v in other.stamps.items():
+            self.stamps[k].extend(v)
+        for k, v in other.map_meta.items():
+            self.map_meta[k].extend(v)
+        for k, v in other.map_shape.items():
+            self.map_shape.setdefault(k, v)
 
 
 def _tf_matrix(tr: object) -> NDArray:
@@ -146,12 +178,17 @@ def _tf_matrix(tr: object) -> NDArray:
     return make_transform(quat_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([t.x, t.y, t.z]))
 
 
-def _scan(bags: BagSet, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
+def _scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], start: int | None, stop: int | None) -> _Scan:
+    """Pass 1 over the messages recorded in [start, stop) (a process-pool job)."""
+    with BagSet(paths) as bags:
+        return _scan(bags.messages(list(roles), start, stop), cfg, roles)
+
+
+def _scan(messages, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
     tp = cfg.topics
     scan = _Scan(stats={t: TopicStats(t, r) for t, r in roles.items()})
     layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
-    total = sum(bags.topics()[t].count for t in roles)
-    for topic, _, t_rec, msg, err in track(bags.messages(list(roles)), "extract: scanning", total=total):
+    for topic, _, t_rec, msg, err in messages:
         s = scan.stats[topic]
         role = roles[topic]
         s.count += 1
@@ -202,6 +239,9 @@ def _scan(bags: BagSet, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
                 ok = bool(np.any(np.isfinite(vals[0]) & (vals[0] > 0)))
                 if not ok:
                     s.first_error = s.first_error or "all-NaN or zero-confidence map"
+                elif role not in scan.map_shape:
+                    g = decode_gridmap(msg, layer_names)
+                    scan.map_shape[role] = (g.shape, g.resolution_m)
             scan.map_meta[role].append((t, ok))
     return scan
 
@@ -406,33 +446,84 @@ def hash_bag(path: Path) -> str:
     return h.hexdigest()
 
 
-def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig) -> ExtractResult:
-    """Read the bags of one drive into the drive store ``out`` (written atomically)."""
+SLICE_S = 20.0  # longest record-time slice of a pass [s]: bounds the memory of one job
+
+
+def _slices(bags: BagSet, workers: int, slices: int | None) -> list[tuple[int | None, int | None]]:
+    """Return record-time slices [start, stop) covering the bags; the ends are open."""
+    lo, hi = bags.time_range()
+    n = slices or max(2 * workers if workers > 1 else 1, int(np.ceil((hi - lo) * 1e-9 / SLICE_S)))
+    edges = [lo + (hi - lo) * i // n for i in range(n + 1)]
+    bounds: list[tuple[int | None, int | None]] = [(edges[i], edges[i + 1]) for i in range(n) if edges[i] < edges[i + 1]]
+    if not bounds:
+        return [(None, None)]
+    bounds[0] = (None, bounds[0][1])
+    bounds[-1] = (bounds[-1][0], None)
+    return bounds
+
+
+class _Jobs:
+    """Runs slice jobs in order on a spawn process pool (or in process for one worker)."""
+
+    def __init__(self, workers: int) -> None:
+        self.pool = None
+        if workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+    def map(self, fn, jobs: list[tuple], label: str):
+        if self.pool is None:
+            return track((fn(*j) for j in jobs), label, total=len(jobs))
+        return track(self.pool.map(fn, *zip(*jobs)), label, total=len(jobs))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None) -> ExtractResult:
+    """Read the bags of one drive into the drive store ``out`` (written atomically).
+
+    Each pass runs as record-time slices on ``workers`` processes (``slices`` fixes
+    their number, for tests); the store does not depend on either.
+    """
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
     import zarr
 
     tmp = st.partial_path(out)
-    import shutil
-
     shutil.rmtree(tmp, ignore_errors=True)
+    jobs = None
+    hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the passes
     try:
         with BagSet(paths) as bags:
             topics = bags.topics()
             roles = _roles(cfg, topics)
-            scan = _scan(bags, cfg, roles)
-            for r in RANGES:
-                meta = scan.map_meta.get(f"map.{r}", [])
-                if not any(ok for _, ok in meta):
-                    st_ = scan.stats[cfg.topics.map_topic(r)]
-                    raise DecodeError(f"{st_.topic}: none of its {st_.count} GridMaps is usable: {st_.first_error or 'no message'}")
-            track_, warnings = _poses(cfg, scan)
-            plan = _select(cfg, track_, scan)
-            if len(plan.t) == 0:
-                counts = _reason_counts(plan.cand_reason)
-                raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {counts}")
-            extr = _extrinsics(cfg, scan)
-            root = zarr.open_group(str(tmp), mode="w")
-            _write_small(root, cfg, scan, track_, plan, extr)
-            _write_large(root, bags, cfg, roles, scan, track_, plan)
+            bounds = _slices(bags, workers, slices)
+        hashes = [hasher.submit(hash_bag, p) for p in paths]
+        jobs = _Jobs(workers if len(bounds) > 1 else 1)
+        parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b) for a, b in bounds], "extract: scanning"))
+        counts = [p.counts() for p in parts]  # before merging: the merge grows parts[0]
+        scan = parts[0]
+        for part in parts[1:]:
+            scan.extend(part)
+        for r in RANGES:
+            meta = scan.map_meta.get(f"map.{r}", [])
+            if not any(ok for _, ok in meta):
+                st_ = scan.stats[cfg.topics.map_topic(r)]
+                raise DecodeError(f"{st_.topic}: none of its {st_.count} GridMaps is usable: {st_.first_error or 'no message'}")
+        track_, warnings = _poses(cfg, scan)
+        plan = _select(cfg, track_, scan)
+        if len(plan.t) == 0:
+            counts = _reason_counts(plan.cand_reason)
+            raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {counts}")
+        extr = _extrinsics(cfg, scan)
+        root = zarr.open_group(str(tmp), mode="w")
+        _write_small(root, cfg, scan, track_, plan, extr)
+        _write_large(root, tmp, paths, cfg, roles, scan, track_, plan, bounds, counts, jobs)
         result = ExtractResult(
             store=out,
             topics=[s.summary() for s in scan.stats.values()],
@@ -447,7 +538,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig) -> ExtractResult
 
         root.attrs.update(st.jsonable({
             "store": st.DRIVE_STORE, "version": st.DRIVE_VERSION, "complete": True,
-            "bags": [{"path": str(p.resolve()), "sha256": hash_bag(p)} for p in paths],
+            "bags": [{"path": str(p.resolve()), "sha256": h.result()} for p, h in zip(paths, hashes)],
             "config": cfg.model_dump(mode="json"),
             "report": {"topics": result.topics, "n_candidates": result.n_candidates, "n_samples": result.n_samples,
                        "rejected": result.rejected, "maps_kept": result.maps_kept, "skew_s": result.skew_s,
@@ -461,6 +552,10 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig) -> ExtractResult
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        hasher.shutdown(wait=True)
+        if jobs is not None:
+            jobs.close()
     return result
 
 
@@ -561,21 +656,28 @@ def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _
     _create(root, "calib/T_base_cam", (4, 4, 4))[:] = np.stack([extr[c][1] for c in CAMERAS])
 
 
-def _map_to_odom(cfg: GtgenConfig, scan: _Scan, g: GridMapData) -> tuple[NDArray, float]:
+def _map_to_odom(cfg: GtgenConfig, static: dict[tuple[str, str], NDArray], g: GridMapData) -> tuple[NDArray, float]:
     """Return the grid centre and yaw in odom, through tf_static if the map frame differs."""
     if g.frame_id in ("", cfg.topics.odom_frame):
         return g.center_m, g.yaw_rad
-    T = _chain(scan.static, cfg.topics.odom_frame, g.frame_id)
+    T = _chain(static, cfg.topics.odom_frame, g.frame_id)
     if T is None:
         raise DecodeError(f"GridMap frame '{g.frame_id}' has no static transform to '{cfg.topics.odom_frame}'")
     Tc = T @ yaw_transform(*g.center_m, g.yaw_rad)
     return Tc[:3, 3], float(np.arctan2(Tc[1, 0], Tc[0, 0]))
 
 
-def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack, plan: _Plan) -> None:
+def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack,
+                 plan: _Plan, bounds: list, counts: list[dict[str, int]], jobs: _Jobs) -> None:
     S = len(plan.t)
     W, H = cfg.extract.image_width, cfg.extract.image_height
-    images = _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 4, H, W, 3))
+    tp = cfg.topics
+    _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3))
+    for r in RANGES:
+        shape, res = scan.map_shape[f"map.{r}"]
+        for name in MAP_LAYERS:
+            _create(root, f"maps/{r}/{name}", (len(plan.map_t[r]),) + shape, chunks=(1,) + shape)
+        root[f"maps/{r}"].attrs.update({"resolution_m": res, "shape": list(shape), "frame": tp.odom_frame})
     # which (role, ordinal) goes where
     want: dict[str, dict[int, list[int]]] = defaultdict(lambda: defaultdict(list))
     for c_i, c in enumerate(CAMERAS):
@@ -583,29 +685,99 @@ def _write_large(root, bags: BagSet, cfg: GtgenConfig, roles: dict[str, str], sc
             want[f"camera.{c}"][int(o)].append(s_i)
     for s_i, o in enumerate(plan.voxel_ord):
         want["voxel_map"][int(o)].append(s_i)
-    map_arrays = {}
     for r in RANGES:
         for k_i, o in enumerate(plan.map_ord[r]):
             want[f"map.{r}"][int(o)].append(k_i)
-        map_arrays[r] = None
-    voxels: list[NDArray | None] = [None] * S
-    vox_pts = root.create_array("voxel_points_odom_m", shape=(0, 3), dtype="float32", chunks=(65536, 3), fill_value=0.0, compressors=compressors())
-    offsets = np.zeros(S + 1, np.int64)
+    big = [t for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"]
+    big_roles = {t: roles[t] for t in big}
+    work = []
+    first = {role: 0 for role in big_roles.values()}  # ordinal of each role's first message in the slice
+    for (a, b), n in zip(bounds, counts):
+        part = {role: {o: t for o, t in want[role].items() if first[role] <= o < first[role] + n[role]} for role in big_roles.values()}
+        work.append((paths, cfg, big_roles, str(tmp), a, b, dict(first), part, scan.static, track_))
+        for role in big_roles.values():
+            first[role] += n[role]
+    vox_pts = _create(root, "voxel_points_odom_m", (16 * VOXEL_CHUNK, 3), chunks=(VOXEL_CHUNK, 3))
+    voxels = _VoxelWriter(vox_pts, S)
     centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
     yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
-    big = [t for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"]
-    img_buf: dict[int, NDArray] = {}
-    total = sum(bags.topics()[t].count for t in big)
+    seen = 0
     with _Writes() as writes:
-        _stream_large(bags, big, total, roles, want, plan, scan, track_, cfg, images, map_arrays, centers, yaws,
-                      voxels, vox_pts, offsets, img_buf, writes, root)
-    _create(root, "samples/voxel_offsets", (S + 1,))[:] = offsets
+        voxels.writes = writes
+        for got in jobs.map(_write_slice, work, "extract: writing"):
+            seen += got.selected
+            for (r, k_i), (c, y) in got.maps.items():
+                centers[r][k_i] = c
+                yaws[r][k_i] = y
+            for s_i, pts in got.voxels.items():
+                voxels.add(s_i, pts)
+        total = voxels.close()
+    n_want = sum(len(v) for v in want.values())
+    if seen != n_want or voxels.next != S:
+        raise BagError(f"bags ended before every selected message was read ({seen} of {n_want} messages)")
+    vox_pts.resize((total, 3))
+    _create(root, "samples/voxel_offsets", (S + 1,))[:] = voxels.offsets
     for r in RANGES:
-        if map_arrays[r] is None:
-            raise DecodeError(f"no {r} GridMap could be written")
         _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
         _create(root, f"maps/{r}/center_odom_m", centers[r].shape)[:] = centers[r]
         _create(root, f"maps/{r}/yaw_odom_rad", yaws[r].shape)[:] = yaws[r]
+
+
+MAP_LAYERS = ("elevation_m", "risk", "confidence")
+VOXEL_CHUNK = 65536  # voxel points per chunk of the flat array
+
+
+class _VoxelWriter:
+    """Writes each sample's voxel points, in sample order, into the flat array in whole
+    chunks (no read-modify-write, no resize per sample); holds at most a chunk's worth
+    plus the samples that arrived ahead of their turn."""
+
+    def __init__(self, arr, S: int) -> None:
+        self.arr, self.S = arr, S
+        self.offsets = np.zeros(S + 1, np.int64)
+        self.pending: dict[int, NDArray] = {}
+        self.buf: list[NDArray] = []
+        self.buffered = 0
+        self.written = 0
+        self.next = 0
+        self.writes: _Writes | None = None
+
+    def add(self, s_i: int, pts: NDArray) -> None:
+        self.pending[s_i] = pts
+        while self.next in self.pending:
+            p = self.pending.pop(self.next)
+            self.offsets[self.next + 1] = self.offsets[self.next] + len(p)
+            self.buf.append(p)
+            self.buffered += len(p)
+            self.next += 1
+        if self.buffered >= VOXEL_CHUNK:
+            self._flush(whole=True)
+
+    def _flush(self, whole: bool) -> None:
+        if not self.buffered:
+            return
+        allp = np.concatenate(self.buf)
+        n = (len(allp) // VOXEL_CHUNK) * VOXEL_CHUNK if whole else len(allp)
+        assert self.writes is not None
+        if self.written + n > self.arr.shape[0]:  # grow by doubling; writes in flight finish first
+            self.writes.drain()
+            self.arr.resize((max(2 * self.arr.shape[0], self.written + n), 3))
+        if n:
+            self.writes.submit(self.arr, slice(self.written, self.written + n), allp[:n])
+        self.written += n
+        self.buf = [allp[n:]]
+        self.buffered = len(allp) - n
+
+    def close(self) -> int:
+        self._flush(whole=False)
+        return self.written
+
+
+@dataclass
+class _SliceOut:
+    selected: int
+    maps: dict[tuple[str, int], tuple[NDArray, float]]
+    voxels: dict[int, NDArray]
 
 
 class _Writes:
@@ -624,82 +796,115 @@ class _Writes:
         while len(self.pending) > 8:
             self.pending.pop(0).result()
 
+    def drain(self) -> None:
+        while self.pending:
+            self.pending.pop(0).result()
+
     def __exit__(self, *exc: object) -> None:
         try:
-            for f in self.pending:
-                f.result()
+            self.drain()
         finally:
             self.pool.shutdown(wait=True)
 
 
-def _stream_large(bags, big, total, roles, want, plan, scan, track_, cfg, images, map_arrays, centers, yaws,
-                  voxels, vox_pts, offsets, img_buf, writes, root) -> None:
+class _Runs:
+    """Gathers writes to consecutive indices of one array into one zarr call: zarr's
+    per-call overhead is paid once per run instead of once per chunk."""
+
+    LIMIT = 8  # indices per call
+
+    def __init__(self, writes: _Writes) -> None:
+        self.writes = writes
+        self.runs: dict[tuple, tuple[object, int, list]] = {}
+
+    def __enter__(self) -> _Runs:
+        return self
+
+    def put(self, arr, index: int, value: NDArray, rest: tuple = ()) -> None:
+        """Write ``value`` at ``arr[(index,) + rest]``, batched along ``index``."""
+        key = (id(arr), rest)
+        run = self.runs.get(key)
+        if run is not None and run[1] + len(run[2]) == index and len(run[2]) < self.LIMIT:
+            run[2].append(value)
+            return
+        if run is not None:
+            self._flush(key)
+        self.runs[key] = (arr, index, [value])
+
+    def _flush(self, key: tuple) -> None:
+        arr, start, values = self.runs.pop(key)
+        self.writes.submit(arr, (slice(start, start + len(values)),) + key[1], np.stack(values))
+
+    def __exit__(self, *exc: object) -> None:
+        if exc[0] is None:
+            for key in list(self.runs):
+                self._flush(key)
+
+
+def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
+                 first: dict[str, int], want: dict[str, dict[int, list[int]]], static: dict, track_: PoseTrack) -> _SliceOut:
+    """Pass 2 over [start, stop) (a process-pool job): decode the selected messages,
+    write images and maps into their chunks; return map poses and voxel points."""
+    import zarr
+
     tp = cfg.topics
-    S = len(plan.t)
     W, H = cfg.extract.image_width, cfg.extract.image_height
     layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
-    ordinal: dict[str, int] = defaultdict(int)
-    next_sample = 0
-    for topic, msgtype, _, msg, err in track(bags.messages(big), "extract: writing", total=total):
-        role = roles[topic]
-        o = ordinal[role]
-        ordinal[role] += 1
-        targets = want[role].get(o)
-        if not targets:
-            continue
-        if msg is None:
-            raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
-        if role.startswith("camera."):
-            c_i = CAMERAS.index(role.split(".")[1])
-            img = resize_image(decode_image(msg, msgtype), W, H)
-            for s_i in targets:
-                buf = img_buf.setdefault(s_i, np.zeros((4, H, W, 3), np.uint8))
-                buf[c_i] = img
-        elif role == "voxel_map":
-            pts = decode_pointcloud(msg)
-            frame = msg.header.frame_id.lstrip("/")
-            if frame not in ("", tp.odom_frame):
-                if frame != tp.base_frame:
-                    raise DecodeError(f"voxel map frame '{frame}' unsupported; expected '{tp.odom_frame}' or '{tp.base_frame}'")
-                T = track_.transforms(np.array([stamp_ns(msg.header)]))[0]
-                pts = (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-            if len(pts) > cfg.shards.max_voxel_points:
-                # keep the points nearest the vehicle: the far ones matter least
-                c = pts.mean(axis=0)
-                pts = pts[np.argsort(np.linalg.norm(pts[:, :2] - c[:2], axis=1), kind="stable")[: cfg.shards.max_voxel_points]]
-            for s_i in targets:
-                voxels[s_i] = pts
-        else:
-            r = role.split(".")[1]
-            g = decode_gridmap(msg, list(layer_names))
-            arr = map_arrays[r]
-            if arr is None:
-                shape = (len(plan.map_t[r]),) + g.shape
-                arr = map_arrays[r] = {
-                    name: _create(root, f"maps/{r}/{name}", shape, chunks=(1,) + g.shape)
-                    for name in ("elevation_m", "risk", "confidence")
-                }
-                root[f"maps/{r}"].attrs.update({"resolution_m": g.resolution_m, "shape": list(g.shape), "frame": tp.odom_frame})
-            if g.shape != tuple(arr["elevation_m"].shape[1:]):
-                raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
-            center, yaw = _map_to_odom(cfg, scan, g)
-            for k_i in targets:
-                for name, layer in zip(("elevation_m", "risk", "confidence"), layer_names):
-                    writes.submit(arr[name], k_i, g.layers[layer])
-                centers[r][k_i] = center
-                yaws[r][k_i] = yaw
-        # flush finished samples in order, so memory holds only a few in flight
-        while next_sample < S and next_sample in img_buf and voxels[next_sample] is not None and _images_done(plan, next_sample, ordinal):
-            writes.submit(images, next_sample, img_buf.pop(next_sample))
-            pts = voxels[next_sample]
-            voxels[next_sample] = None
-            offsets[next_sample + 1] = offsets[next_sample] + len(pts)
-            if len(pts):
-                vox_pts.append(pts, axis=0)
-            next_sample += 1
-    if next_sample != S:
-        raise BagError(f"bags ended before every selected message was read ({next_sample} of {S} samples complete)")
+    root = zarr.open_group(store, mode="r+")
+    images = root["samples/images"]
+    maps = {r: {name: root[f"maps/{r}/{name}"] for name in MAP_LAYERS} for r in RANGES}
+    out = _SliceOut(0, {}, {})
+    if not any(want.values()):
+        return out
+    ordinal = dict(first)
+    with BagSet(paths) as bags, _Writes() as writes, _Runs(writes) as runs:
+        for topic, msgtype, _, msg, err in bags.messages(list(roles), start, stop):
+            role = roles[topic]
+            o = ordinal[role]
+            ordinal[role] += 1
+            targets = want[role].get(o)
+            if not targets:
+                continue
+            out.selected += 1
+            if msg is None:
+                raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
+            if role.startswith("camera."):
+                c_i = CAMERAS.index(role.split(".")[1])
+                img = resize_image(decode_image(msg, msgtype), W, H)
+                for s_i in targets:
+                    runs.put(images, s_i, img, (c_i,))
+            elif role == "voxel_map":
+                pts = _voxel_points(msg, cfg, track_)
+                for s_i in targets:
+                    out.voxels[s_i] = pts
+            else:
+                r = role.split(".")[1]
+                g = decode_gridmap(msg, list(layer_names))
+                arr = maps[r]
+                if g.shape != tuple(arr["elevation_m"].shape[1:]):
+                    raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
+                center, yaw = _map_to_odom(cfg, static, g)
+                for k_i in targets:
+                    for name, layer in zip(MAP_LAYERS, layer_names):
+                        runs.put(arr[name], k_i, g.layers[layer])
+                    out.maps[(r, k_i)] = (center, yaw)
+    return out
 
 
-def _images_done(plan: _Plan, s_i: int, ordinal: dict[str, int]) -> bool:
-    return all(ordinal[f"camera.{c}"] > plan.image_ord[s_i, c_i] for c_i, c in enumerate(CAMERAS))
+def _voxel_points(msg, cfg: GtgenConfig, track_: PoseTrack) -> NDArray[np.float32]:
+    """Return a voxel map's points in odom, at most ``shards.max_voxel_points`` (the nearest)."""
+    tp = cfg.topics
+    pts = decode_pointcloud(msg)
+    frame = msg.header.frame_id.lstrip("/")
+    if frame not in ("", tp.odom_frame):
+        if frame != tp.base_frame:
+            raise DecodeError(f"voxel map frame '{frame}' unsupported; expected '{tp.odom_frame}' or '{tp.base_frame}'")
+        T = track_.transforms(np.array([stamp_ns(msg.header)]))[0]
+        pts = (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    n = cfg.shards.max_voxel_points
+    if len(pts) > n:
+        # keep the points nearest the vehicle (the far ones matter least), in message order
+        c = pts[:, :2].mean(axis=0)
+        d2 = np.square(pts[:, 0] - c[0]) + np.square(pts[:, 1] - c[1])
+        pts = pts[np.sort(np.argpartition(d2, n - 1)[:n])]
+    return pts
