@@ -70,3 +70,62 @@ def compressors() -> list:
     from zarr.codecs import ZstdCodec
 
     return [ZstdCodec(level=1)]
+
+
+class RowAppender:
+    """Appends rows to a 2-D zarr array in whole chunks along axis 0.
+
+    ``zarr.Array.append`` per small batch resizes the array and rewrites a partly filled
+    chunk every time; this buffers rows and writes only whole chunks, doubling the
+    capacity when needed, and ``close`` writes the rest and trims the array. ``write``
+    replaces ``arr[index] = value`` (for example to write on a thread pool); ``before_resize``
+    runs before each resize (to finish writes in flight).
+    """
+
+    def __init__(self, arr, write=None, before_resize=None) -> None:
+        self.arr = arr
+        self.chunk = int(arr.chunks[0])
+        self.write = write or (lambda a, index, value: a.__setitem__(index, value))
+        self.before_resize = before_resize
+        self.buf: list = []
+        self.buffered = 0
+        self.written = 0
+
+    @property
+    def rows(self) -> int:
+        """Rows appended so far."""
+        return self.written + self.buffered
+
+    def append(self, rows) -> None:
+        if len(rows):
+            self.buf.append(rows)
+            self.buffered += len(rows)
+        if self.buffered >= self.chunk:
+            self._flush(whole=True)
+
+    def _flush(self, whole: bool) -> None:
+        import numpy as np
+
+        if not self.buffered:
+            return
+        allr = np.concatenate(self.buf) if len(self.buf) > 1 else self.buf[0]
+        n = (len(allr) // self.chunk) * self.chunk if whole else len(allr)
+        if n == 0:
+            return
+        if self.written + n > self.arr.shape[0]:
+            if self.before_resize is not None:
+                self.before_resize()
+            self.arr.resize((max(2 * self.arr.shape[0], self.written + n), *self.arr.shape[1:]))
+        self.write(self.arr, slice(self.written, self.written + n), allr[:n])
+        self.written += n
+        self.buf = [allr[n:]] if n < len(allr) else []
+        self.buffered = len(allr) - n
+
+    def close(self) -> int:
+        """Write the buffered rows, trim the array to the rows appended; return their count."""
+        self._flush(whole=False)
+        if self.before_resize is not None:
+            self.before_resize()
+        if self.arr.shape[0] != self.written:
+            self.arr.resize((self.written, *self.arr.shape[1:]))
+        return self.written

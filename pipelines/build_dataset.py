@@ -13,6 +13,7 @@ stage is deterministic, so the result is the same however the work was split.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -221,10 +222,32 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
 
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+    # longest drives first, so that no worker is left with a long drive at the end
+    todo = sorted(todo, key=lambda t: -sum(_size(Path(b)) for b in t[1]))
+    with _one_thread_each(), ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
         futs = {ex.submit(process_drive, *t[:5]): t[5] for t in todo}
         for fut in track(done_first(futs), "build: drives", total=len(futs)):
             yield fut.result(), futs[fut]
+
+
+def _size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
+
+
+@contextlib.contextmanager
+def _one_thread_each():
+    """Spawned workers inherit one OpenMP/BLAS thread each (unless the user set them):
+    the pool already keeps every core busy, and nested threads only contend."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
 
 
 class _Merger:
@@ -249,7 +272,9 @@ class _Merger:
         import zarr
 
         from gtgen.shards import schema as sc
-        from gtgen.shards.writer import ShardWriter
+        from concurrent.futures import ThreadPoolExecutor
+
+        from gtgen.shards.writer import ShardWriter, copy_samples
 
         self.next += 1
         if not res.ok:
@@ -261,18 +286,31 @@ class _Merger:
             self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
             self.first_attrs = a
         d = len(self.drives_attr)
-        names = list(self.writer.arrays)
         S = int(g["meta/t_ns"].shape[0])
-        off = g["inputs/voxel_offsets"][:]
-        B = sc.SAMPLES_PER_SHARD
-        for a0 in track(range(0, S, B), f"build: merging {res.name}"):
-            b0 = min(a0 + B, S)
-            block = {p: g[p][a0:b0] for p in names}
-            pts = g["inputs/voxel_points_m"][off[a0] : off[b0]]
-            for k in range(b0 - a0):
-                sample = {p: block[p][k] for p in names}
-                sample["meta/drive"] = np.uint16(d)
-                self.writer.add(sample, pts[off[a0 + k] - off[a0] : off[a0 + k + 1] - off[a0]])
+        off = self.writer.n
+        self.writer._ensure(off + S)
+        src = work / res.name / "dataset.zarr"
+        def merge_array(p: str) -> None:
+            # shards move as encoded bytes; an array of another layout is decoded and re-encoded
+            if not copy_samples(g, src, self.writer.root, self.tmp, p, off, S):
+                arr = self.writer.arrays[p]
+                for a0 in range(0, S, sc.SAMPLES_PER_SHARD):
+                    arr[off + a0 : off + min(a0 + sc.SAMPLES_PER_SHARD, S)] = g[p][a0 : a0 + sc.SAMPLES_PER_SHARD]
+
+        # arrays are independent files, and file I/O releases the GIL: a few at a time
+        with ThreadPoolExecutor(max_workers=4) as io:
+            for _ in track(io.map(merge_array, list(self.writer.arrays)), f"build: merging {res.name}", total=len(self.writer.arrays)):
+                pass
+        if S:
+            self.writer.arrays["meta/drive"][off : off + S] = np.full(S, d, np.uint16)
+        voff = g["inputs/voxel_offsets"][:]
+        pts = g["inputs/voxel_points_m"]
+        step = max(1, int(pts.chunks[0]))
+        for p0 in range(0, int(voff[-1]) if len(voff) else 0, step):
+            self.writer.rows.append(pts[p0 : min(p0 + step, int(voff[-1]))])
+        base = self.writer.offsets[-1]
+        self.writer.offsets.extend((base + voff[1:]).tolist())
+        self.writer.n = off + S
         for t, rs, f, r in zip(g["rejected/t_ns"][:], g["rejected/reason"][:], g["rejected/icp_fitness"][:], g["rejected/icp_rmse_m"][:]):
             self.writer.reject(int(t), d, int(rs), float(f), float(r))
         self.drives_attr.append({"name": res.name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})

@@ -107,3 +107,43 @@ def test_corrupt_bag_fails_its_drive_only(drives, tmp_path):
     assert "drive z_bad FAILED" in text and "truncated or corrupt" in text
     g = zarr.open_group(str(tmp_path / "o" / "dataset.zarr"), mode="r")
     assert [d["name"] for d in g.attrs["drives"]] == ["a", "b"]
+
+
+def test_merged_dataset_is_the_drives_end_to_end(pool_build):
+    """Shards copied as bytes: every per-sample array of the dataset is the concatenation
+    of the drives' own datasets (meta/drive aside), and the voxel offsets are shifted."""
+    from gtgen.shards import schema as sc
+
+    g = zarr.open_group(str(pool_build / "dataset.zarr"), mode="r")
+    parts = [zarr.open_group(str(pool_build / "drives" / n / "dataset.zarr"), mode="r") for n in ("a", "b", "c")]
+    sizes = [p["meta/t_ns"].shape[0] for p in parts]
+    assert g["meta/t_ns"].shape[0] == sum(sizes) and sizes[0] % sc.SAMPLES_PER_SHARD != 0  # drive b starts mid-shard
+    for s in sc.DATASET_ARRAYS:
+        if s.path.startswith(("rejected/", "inputs/voxel_")) or s.path == "meta/drive":
+            continue
+        want = np.concatenate([p[s.path][:] for p in parts])
+        np.testing.assert_array_equal(g[s.path][:], want, err_msg=s.path)
+    np.testing.assert_array_equal(g["meta/drive"][:], np.repeat([0, 1, 2], sizes))
+    np.testing.assert_array_equal(g["inputs/voxel_points_m"][:], np.concatenate([p["inputs/voxel_points_m"][:] for p in parts]))
+    off = np.concatenate([[0]] + [p["inputs/voxel_offsets"][1:] + sum(q["inputs/voxel_offsets"][-1] for q in parts[:i]) for i, p in enumerate(parts)])
+    np.testing.assert_array_equal(g["inputs/voxel_offsets"][:], off)
+
+
+def test_shard_bytes_roundtrip_through_zarr(tmp_path):
+    """write_shard produces shards zarr reads, read_shard reads the ones zarr writes."""
+    from gtgen.format import compressors
+    from gtgen.shards.writer import read_shard, write_shard
+
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    a = root.create_array("x", shape=(8, 3, 2), dtype="float32", chunks=(1, 3, 2), shards=(4, 3, 2), fill_value=np.nan, compressors=compressors())
+    data = np.arange(48, dtype=np.float32).reshape(8, 3, 2)
+    a[:4] = data[:4]
+    chunks = read_shard(tmp_path / "s.zarr" / "x" / "c" / "0" / "0" / "0", 4)
+    assert all(c is not None for c in chunks)
+    write_shard(tmp_path / "s.zarr" / "x" / "c" / "1" / "0" / "0", [chunks[3], None, chunks[0], None])
+    b = zarr.open_group(str(tmp_path / "s.zarr"), mode="r")["x"]
+    np.testing.assert_array_equal(b[4], data[3])
+    np.testing.assert_array_equal(b[6], data[0])
+    assert np.isnan(b[5]).all() and np.isnan(b[7]).all()
+    with pytest.raises(ValueError, match="bad index"):
+        read_shard(tmp_path / "s.zarr" / "x" / "c" / "0" / "0" / "0", 5)

@@ -28,7 +28,7 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
-from gtgen.format import compressors
+from gtgen.format import RowAppender, compressors
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
 from gtgen.progress import track
 
@@ -698,12 +698,11 @@ def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: di
         for role in big_roles.values():
             first[role] += n[role]
     vox_pts = _create(root, "voxel_points_odom_m", (16 * VOXEL_CHUNK, 3), chunks=(VOXEL_CHUNK, 3))
-    voxels = _VoxelWriter(vox_pts, S)
     centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
     yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
     seen = 0
     with _Writes() as writes:
-        voxels.writes = writes
+        voxels = _VoxelWriter(vox_pts, S, writes)
         for got in jobs.map(_write_slice, work, "extract: writing"):
             seen += got.selected
             for (r, k_i), (c, y) in got.maps.items():
@@ -711,11 +710,10 @@ def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: di
                 yaws[r][k_i] = y
             for s_i, pts in got.voxels.items():
                 voxels.add(s_i, pts)
-        total = voxels.close()
+        voxels.close()
     n_want = sum(len(v) for v in want.values())
     if seen != n_want or voxels.next != S:
         raise BagError(f"bags ended before every selected message was read ({seen} of {n_want} messages)")
-    vox_pts.resize((total, 3))
     _create(root, "samples/voxel_offsets", (S + 1,))[:] = voxels.offsets
     for r in RANGES:
         _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
@@ -728,49 +726,26 @@ VOXEL_CHUNK = 65536  # voxel points per chunk of the flat array
 
 
 class _VoxelWriter:
-    """Writes each sample's voxel points, in sample order, into the flat array in whole
-    chunks (no read-modify-write, no resize per sample); holds at most a chunk's worth
-    plus the samples that arrived ahead of their turn."""
+    """Writes each sample's voxel points in sample order (samples may arrive ahead of
+    their turn) through a chunk-aligned appender; fills ``offsets``."""
 
-    def __init__(self, arr, S: int) -> None:
-        self.arr, self.S = arr, S
+    def __init__(self, arr, S: int, writes: _Writes) -> None:
+        self.S = S
         self.offsets = np.zeros(S + 1, np.int64)
         self.pending: dict[int, NDArray] = {}
-        self.buf: list[NDArray] = []
-        self.buffered = 0
-        self.written = 0
         self.next = 0
-        self.writes: _Writes | None = None
+        self.rows = RowAppender(arr, write=writes.submit, before_resize=writes.drain)
 
     def add(self, s_i: int, pts: NDArray) -> None:
         self.pending[s_i] = pts
         while self.next in self.pending:
             p = self.pending.pop(self.next)
             self.offsets[self.next + 1] = self.offsets[self.next] + len(p)
-            self.buf.append(p)
-            self.buffered += len(p)
+            self.rows.append(p)
             self.next += 1
-        if self.buffered >= VOXEL_CHUNK:
-            self._flush(whole=True)
-
-    def _flush(self, whole: bool) -> None:
-        if not self.buffered:
-            return
-        allp = np.concatenate(self.buf)
-        n = (len(allp) // VOXEL_CHUNK) * VOXEL_CHUNK if whole else len(allp)
-        assert self.writes is not None
-        if self.written + n > self.arr.shape[0]:  # grow by doubling; writes in flight finish first
-            self.writes.drain()
-            self.arr.resize((max(2 * self.arr.shape[0], self.written + n), 3))
-        if n:
-            self.writes.submit(self.arr, slice(self.written, self.written + n), allp[:n])
-        self.written += n
-        self.buf = [allp[n:]]
-        self.buffered = len(allp) - n
 
     def close(self) -> int:
-        self._flush(whole=False)
-        return self.written
+        return self.rows.close()
 
 
 @dataclass

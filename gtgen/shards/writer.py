@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.format import compressors, dimension_names
+from gtgen.format import RowAppender, compressors, dimension_names
 from gtgen.shards import schema as sc
 
 
@@ -36,9 +36,10 @@ class ShardWriter:
                 s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value(), compressors=compressors(),
                 dimension_names=dimension_names(s),
             )
-        self.points = self.root.create_array("inputs/voxel_points_m", shape=(0, 3), dtype="float32",
+        self.points = self.root.create_array("inputs/voxel_points_m", shape=(sc.POINTS_PER_CHUNK, 3), dtype="float32",
                                              chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0, compressors=compressors(),
                                              dimension_names=dimension_names(sc.spec("inputs/voxel_points_m")))
+        self.rows = RowAppender(self.points)
         self.offsets = [0]
         self.buffer: list[dict[str, NDArray]] = []
         self.n = 0
@@ -50,8 +51,7 @@ class ShardWriter:
         if missing:
             raise KeyError(f"sample lacks arrays {sorted(missing)}")
         self.buffer.append(sample)
-        if len(points):
-            self.points.append(np.asarray(points, np.float32).reshape(-1, 3), axis=0)
+        self.rows.append(np.asarray(points, np.float32).reshape(-1, 3))
         self.offsets.append(self.offsets[-1] + len(points))
         if len(self.buffer) == sc.SAMPLES_PER_SHARD:
             self._flush()
@@ -62,8 +62,7 @@ class ShardWriter:
             raise RuntimeError("add_block after add: blocks must stay shard-aligned")
         self._ensure(self.n + len(points))
         for p in points:
-            if len(p):
-                self.points.append(np.asarray(p, np.float32).reshape(-1, 3), axis=0)
+            self.rows.append(np.asarray(p, np.float32).reshape(-1, 3))
             self.offsets.append(self.offsets[-1] + len(p))
         self.n += len(points)
 
@@ -92,6 +91,7 @@ class ShardWriter:
     def close(self, attrs: dict[str, Any]) -> int:
         """Write what is buffered, shrink to the samples written, store attributes; return S."""
         self._flush()
+        self.rows.close()
         for arr in self.arrays.values():
             arr.resize((self.n, *arr.shape[1:]))
         off = self.root.create_array("inputs/voxel_offsets", shape=(self.n + 1,), dtype="int64",
@@ -124,3 +124,89 @@ def write_block(path: Path, start: int, samples: list[dict[str, NDArray]]) -> No
         if s.path.startswith(("rejected/", "inputs/voxel_")):
             continue
         root[s.path][start : start + len(samples)] = np.stack([x[s.path] for x in samples])
+
+
+# -- byte-wise shard copies --------------------------------------------------------------
+# A shard of a zarr v3 ``sharding_indexed`` array with the index at the end is the encoded
+# inner chunks back to back, then n x (offset, nbytes) uint64 little-endian and the
+# crc32c of that index. Our per-sample arrays have one sample per inner chunk, so samples
+# move between stores as bytes: no decoding, no re-encoding.
+_EMPTY = 2**64 - 1
+
+
+def _copyable_meta(arr) -> dict | None:
+    """Return the metadata that must match for byte copies, or None if the layout is not
+    one sample per inner chunk, index at the end with bytes + crc32c index codecs."""
+    md = arr.metadata.to_dict()
+    codecs = md.get("codecs") or []
+    if len(codecs) != 1 or codecs[0].get("name") != "sharding_indexed":
+        return None
+    conf = codecs[0]["configuration"]
+    names = [c.get("name") for c in conf.get("index_codecs", [])]
+    if conf.get("index_location", "end") != "end" or names != ["bytes", "crc32c"] or conf["chunk_shape"][0] != 1:
+        return None
+    if list(conf["chunk_shape"][1:]) != list(arr.shape[1:]):
+        return None
+    enc = md.get("chunk_key_encoding", {})
+    if enc.get("name") != "default" or enc.get("configuration", {}).get("separator", "/") != "/":
+        return None
+    return {"dtype": md["data_type"], "fill": str(md["fill_value"]), "grid": md["chunk_grid"], "codecs": codecs,
+            "tail": list(arr.shape[1:])}
+
+
+def _shard_file(root: Path, path: str, k: int, ndim: int) -> Path:
+    return root / path / "c" / str(k) / Path(*(["0"] * (ndim - 1))) if ndim > 1 else root / path / "c" / str(k)
+
+
+def read_shard(file: Path, n: int) -> list[bytes | None]:
+    """Return the ``n`` encoded inner chunks of a shard file (None where empty)."""
+    if not file.is_file():
+        return [None] * n
+    import google_crc32c
+
+    data = file.read_bytes()
+    index = data[-(16 * n + 4):]
+    if len(index) != 16 * n + 4 or google_crc32c.value(index[:-4]) != int.from_bytes(index[-4:], "little"):
+        raise ValueError(f"shard '{file}' has a bad index (expected {n} inner chunks)")
+    entries = np.frombuffer(index[:-4], "<u8").reshape(n, 2)
+    return [None if o == _EMPTY else data[int(o) : int(o) + int(m)] for o, m in entries]
+
+
+def write_shard(file: Path, chunks: list[bytes | None]) -> None:
+    """Write a shard file of encoded inner chunks (None = empty)."""
+    import google_crc32c
+
+    index = np.full((len(chunks), 2), _EMPTY, "<u8")
+    parts, pos = [], 0
+    for i, c in enumerate(chunks):
+        if c is not None:
+            index[i] = (pos, len(c))
+            parts.append(c)
+            pos += len(c)
+    ib = index.tobytes()
+    file.parent.mkdir(parents=True, exist_ok=True)
+    tmp = file.with_name(file.name + ".tmp")
+    tmp.write_bytes(b"".join(parts) + ib + int(google_crc32c.value(ib)).to_bytes(4, "little"))
+    tmp.replace(file)
+
+
+def copy_samples(src, src_root: Path, dst, dst_root: Path, path: str, off: int, n: int) -> bool:
+    """Copy samples [0, n) of array ``path`` of store ``src`` to [off, off + n) of ``dst``
+    as encoded bytes; return False (copying nothing) if the two layouts differ."""
+    a, b = src[path], dst[path]
+    meta = _copyable_meta(a)
+    if meta is None or meta != _copyable_meta(b) or a.shape[0] < n or b.shape[0] < off + n:
+        return False
+    K = int(b.metadata.to_dict()["chunk_grid"]["configuration"]["chunk_shape"][0])
+    Ks = int(a.metadata.to_dict()["chunk_grid"]["configuration"]["chunk_shape"][0])
+    cache: tuple[int, list] = (-1, [])
+    for k in range(off // K, (off + n - 1) // K + 1):
+        out = _shard_file(dst_root, path, k, a.ndim)
+        chunks = read_shard(out, K)
+        for g in range(max(off, k * K), min(off + n, (k + 1) * K)):
+            s = g - off
+            if cache[0] != s // Ks:
+                cache = (s // Ks, read_shard(_shard_file(src_root, path, s // Ks, a.ndim), Ks))
+            chunks[g - k * K] = cache[1][s % Ks]
+        write_shard(out, chunks)
+    return True
