@@ -17,10 +17,15 @@ if __name__ == "__main__":
         for i in range(4):
             subprocess.run([sys.executable, "-m", "gtgen", "synth", str(src / f"d{i}"), "--duration", "20", "--seed", str(i),
                             "--format", "mcap"], check=True, capture_output=True)
-    t = {}
-    for w in (1, 2):
-        out = OUT / f"build_w{w}"
-        shutil.rmtree(out, ignore_errors=True)
-        t[w], rss = run_measured(["build", str(src), "-o", str(out), "--workers", str(w)])
-        print(f"{w} worker(s): {t[w]:.1f} s; peak RSS of the largest process {rss:.0f} MiB")
-    print(f"speed-up 2 workers over 1 on 4 drives: {t[1] / t[2]:.2f}x (goal >= 1.7x)")
+    # this machine's speed drifts by +-20 % over minutes: alternate the two settings twice
+    # and compare the best run of each, as timing tools do
+    t: dict[int, list[float]] = {1: [], 2: []}
+    for rep in range(2):
+        for w in (1, 2):
+            out = OUT / f"build_w{w}"
+            shutil.rmtree(out, ignore_errors=True)
+            dt, rss = run_measured(["build", str(src), "-o", str(out), "--workers", str(w)])
+            t[w].append(dt)
+            print(f"run {rep + 1}, {w} worker(s): {dt:.1f} s; peak RSS of the largest process {rss:.0f} MiB")
+    print(f"speed-up 2 workers over 1 on 4 drives (best of 2 each): {min(t[1]) / min(t[2]):.2f}x (goal >= 1.7x); "
+          f"per alternation: {', '.join(f'{a / b:.2f}x' for a, b in zip(t[1], t[2]))}")

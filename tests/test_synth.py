@@ -220,3 +220,14 @@ def test_fast_sampling_and_marching_equal_their_oracles(drive_dir, cfg):
     k0, hit0 = march_naive(raster, o, rays)
     assert np.array_equal(hit, hit0) and np.array_equal(k, k0)
     assert 0 < hit.sum() < len(hit)  # both hits and sky rays are exercised
+
+    # map cells as outer sums are the cells through odom_to_world
+    from gtgen.synth.sensors import map_cells_world
+
+    grid, k = cfg.grids.get("micro"), len(world.t_ns) // 2
+    cu, cv = map_cells_world(grid, world.odom.p_odom[k, :2] + 0.3, world.odom, k)
+    cc = -0.5 * grid.length_m + (np.arange(grid.size) + 0.5) * grid.resolution_m
+    X, Y = np.meshgrid(world.odom.p_odom[k, 0] + 0.3 + cc, world.odom.p_odom[k, 1] + 0.3 + cc, indexing="ij")
+    w = world.odom.odom_to_world(k, np.stack([X, Y, np.zeros_like(X)], -1))
+    np.testing.assert_allclose(cu, w[..., 0], atol=1e-9)
+    np.testing.assert_allclose(cv, w[..., 1], atol=1e-9)

@@ -249,7 +249,7 @@ class _Ticker:
             for rng_name in ("micro", "short"):
                 grid = cfg.grids.get(rng_name)
                 center = np.round(p_o[:2] / grid.resolution_m) * grid.resolution_m
-                cells = sensors.map_cells_world(grid, center, lambda pts: odom.odom_to_world(k, pts))
+                cells = sensors.map_cells_world(grid, center, odom, k)
                 layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng)
                 start = (0, 0)
                 if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:

@@ -18,7 +18,9 @@ from gtgen.geometry import rpy_to_quat, quat_to_matrix
 from gtgen.synth.terrain import Terrain
 
 N_AZ = 720
-RANGE_STEP_M = 0.25
+RANGE_STEP_M = 0.25  # polar range step near the lidar [m]
+FAR_FROM_M = 30.0  # beyond this range the step doubles: fewer samples where cells are coarse anyway
+FAR_STEP_M = 0.5
 MIN_ELEV_ANGLE = np.tan(np.deg2rad(-25.0))
 
 
@@ -36,9 +38,16 @@ class LidarView:
     held_ground: NDArray[np.float32]  # last seen ground height along the ray (NaN before any)
 
 
+def lidar_ranges(max_range_m: float) -> NDArray[np.float64]:
+    """Return the polar sample ranges [m]: RANGE_STEP_M up to FAR_FROM_M, FAR_STEP_M beyond."""
+    near = np.arange(1.0, min(FAR_FROM_M, max_range_m + 1e-9), RANGE_STEP_M)
+    far = np.arange(FAR_FROM_M, max_range_m + 1e-9, FAR_STEP_M) if max_range_m >= FAR_FROM_M else np.zeros(0)
+    return np.concatenate([near, far])
+
+
 def lidar_view(cfg: SynthConfig, terrain: Terrain, origin: NDArray) -> LidarView:
     """Return the polar visibility of the terrain from a lidar at world ``origin``."""
-    ranges = np.arange(1.0, cfg.lidar_range_m + 1e-9, RANGE_STEP_M)
+    ranges = lidar_ranges(cfg.lidar_range_m)
     az = np.arange(N_AZ) * (2 * np.pi / N_AZ)
     U = origin[0] + np.cos(az)[:, None] * ranges[None, :]
     V = origin[1] + np.sin(az)[:, None] * ranges[None, :]
@@ -64,7 +73,9 @@ def polar_lookup(view: LidarView, u: NDArray, v: NDArray) -> tuple[NDArray, NDAr
     dv = v - view.origin[1]
     r = np.hypot(du, dv)
     ai = np.round(np.arctan2(dv, du) / (2 * np.pi / N_AZ)).astype(np.int64) % N_AZ
+    n_near = int(np.count_nonzero(view.ranges < FAR_FROM_M))
     ri = np.round((r - view.ranges[0]) / RANGE_STEP_M).astype(np.int64)
+    ri = np.where(ri < n_near, ri, n_near + np.round((r - FAR_FROM_M) / FAR_STEP_M).astype(np.int64))
     ri = np.where((ri < 0) | (ri >= len(view.ranges)), -1, ri)
     return ai, ri, r
 
@@ -100,11 +111,11 @@ def xracer_map(
     seen_g = ok & view.seen_ground[ai, rr]
     held = np.where(ok, view.held_ground[ai, rr], np.nan)
     noise_sd = cfg.elevation_noise_m + cfg.elevation_noise_per_m * r
-    elev = np.where(seen_g | seen_s, ground + rng.standard_normal(u.shape).astype(np.float32) * noise_sd, held)
+    elev = np.where(seen_g | seen_s, ground + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
     conf = np.where(seen_s, 0.5 ** (r / cfg.confidence_range_m), 0.0)
-    conf = np.clip(conf * (1 + 0.05 * rng.standard_normal(u.shape)), 0, 1)
+    conf = np.clip(conf * (1 + 0.05 * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
     conf = np.where(seen_s, np.maximum(conf, 0.12), conf)
-    risk_obs = np.clip(risk + 0.03 * rng.standard_normal(u.shape), 0, 1)
+    risk_obs = np.clip(risk + 0.03 * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
     risk_out = np.where(seen_s, risk_obs, 0.0)
     nan = np.isnan(elev)
     return MapLayers(
@@ -114,13 +125,18 @@ def xracer_map(
     )
 
 
-def map_cells_world(grid: GridSpec, center_odom_xy: NDArray, odom_to_world) -> tuple[NDArray, NDArray]:
-    """Return world (u, v) of the cells of an odom-aligned grid centred at ``center_odom_xy``."""
+def map_cells_world(grid: GridSpec, center_odom_xy: NDArray, odom, k: int) -> tuple[NDArray, NDArray]:
+    """Return world (u, v) of the cells of an odom-aligned grid centred at ``center_odom_xy``,
+    through ``odom.odom_to_world`` at pose ``k``. That map is a rotation and shift in the
+    plane, so the grid maps as outer sums of its two axes (the same numbers, no (n, n, 3)
+    temporaries)."""
     c = -0.5 * grid.length_m + (np.arange(grid.size) + 0.5) * grid.resolution_m
-    X, Y = np.meshgrid(center_odom_xy[0] + c, center_odom_xy[1] + c, indexing="ij")
-    pts = np.stack([X, Y, np.zeros_like(X)], -1)
-    w = odom_to_world(pts)
-    return w[..., 0], w[..., 1]
+    dx = (center_odom_xy[0] + c) - odom.p_odom[k, 0]
+    dy = (center_odom_xy[1] + c) - odom.p_odom[k, 1]
+    cs, sn = np.cos(-odom.dyaw[k]), np.sin(-odom.dyaw[k])
+    u = (cs * dx[:, None] - sn * dy[None, :]) + odom.p_true[k, 0]
+    v = (sn * dx[:, None] + cs * dy[None, :]) + odom.p_true[k, 1]
+    return u, v
 
 
 def voxelize(points: NDArray, voxel_m: float) -> NDArray[np.float32]:
