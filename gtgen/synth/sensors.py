@@ -69,10 +69,10 @@ def lidar_view(cfg: SynthConfig, terrain: Terrain, origin: NDArray) -> LidarView
 
 def polar_lookup(view: LidarView, u: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
     """Return (azimuth index, range index, range [m]) of world points; range index -1 outside."""
-    du = u - view.origin[0]
-    dv = v - view.origin[1]
+    du = (u - view.origin[0]).astype(np.float32)
+    dv = (v - view.origin[1]).astype(np.float32)
     r = np.hypot(du, dv)
-    ai = np.round(np.arctan2(dv, du) / (2 * np.pi / N_AZ)).astype(np.int64) % N_AZ
+    ai = np.round(np.arctan2(dv, du) * np.float32(N_AZ / (2 * np.pi))).astype(np.int64) % N_AZ
     n_near = int(np.count_nonzero(view.ranges < FAR_FROM_M))
     ri = np.round((r - view.ranges[0]) / RANGE_STEP_M).astype(np.int64)
     ri = np.where(ri < n_near, ri, n_near + np.round((r - FAR_FROM_M) / FAR_STEP_M).astype(np.int64))
@@ -106,22 +106,22 @@ def xracer_map(
     ground, risk = terrain.sample(u, v, ("ground", "risk"))
     ai, ri, r = polar_lookup(view, u, v)
     ok = ri >= 0
-    rr = np.maximum(ri, 0)
-    seen_s = ok & view.seen_surface[ai, rr]
-    seen_g = ok & view.seen_ground[ai, rr]
-    held = np.where(ok, view.held_ground[ai, rr], np.nan)
-    noise_sd = cfg.elevation_noise_m + cfg.elevation_noise_per_m * r
+    flat = ai * len(view.ranges) + np.maximum(ri, 0)  # one index into the (N_AZ, N_R) view arrays
+    seen_s = ok & view.seen_surface.ravel().take(flat)
+    seen_g = ok & view.seen_ground.ravel().take(flat)
+    held = np.where(ok, view.held_ground.ravel().take(flat), np.float32(np.nan))
+    r = r.astype(np.float32)
+    noise_sd = np.float32(cfg.elevation_noise_m) + np.float32(cfg.elevation_noise_per_m) * r
     elev = np.where(seen_g | seen_s, ground + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
-    conf = np.where(seen_s, 0.5 ** (r / cfg.confidence_range_m), 0.0)
-    conf = np.clip(conf * (1 + 0.05 * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
-    conf = np.where(seen_s, np.maximum(conf, 0.12), conf)
-    risk_obs = np.clip(risk + 0.03 * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
-    risk_out = np.where(seen_s, risk_obs, 0.0)
+    conf = np.exp2(r * np.float32(-1.0 / cfg.confidence_range_m))  # 0.5 ** (r / confidence_range_m)
+    conf = np.clip(conf * (1 + np.float32(0.05) * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
+    conf = np.where(seen_s, np.maximum(conf, np.float32(0.12)), np.float32(0.0))
+    risk_obs = np.clip(risk + np.float32(0.03) * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
     nan = np.isnan(elev)
     return MapLayers(
-        elevation=(elev + z_world_to_map).astype(np.float32),
-        risk=np.where(nan, np.nan, risk_out).astype(np.float32),
-        confidence=np.where(nan, 0.0, conf).astype(np.float32),
+        elevation=(elev + np.float32(z_world_to_map)).astype(np.float32, copy=False),
+        risk=np.where(nan, np.float32(np.nan), np.where(seen_s, risk_obs, np.float32(0.0))).astype(np.float32, copy=False),
+        confidence=np.where(nan, np.float32(0.0), conf).astype(np.float32, copy=False),
     )
 
 

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from gtgen.config import SynthConfig
 
 TILE_CELLS = 512
+TILE_SHIFT = 9  # TILE_CELLS == 1 << TILE_SHIFT
 TILE_RES_M = 0.1
 BASE_HEIGHT_M = 240.0
 
@@ -211,11 +212,13 @@ class Terrain:
             return [np.zeros(shape, np.float32) for _ in layers]
         fu = u.ravel() / TILE_RES_M
         fv = v.ravel() / TILE_RES_M
-        iu = np.floor(fu).astype(np.int64)
-        iv = np.floor(fv).astype(np.int64)
+        iu = np.floor(fu)
+        iv = np.floor(fv)
         au = (fu - iu).astype(np.float32)
         av = (fv - iv).astype(np.float32)
-        tu, tv = iu // TILE_CELLS, iv // TILE_CELLS
+        iu = iu.astype(np.int64)
+        iv = iv.astype(np.int64)
+        tu, tv = iu >> TILE_SHIFT, iv >> TILE_SHIFT  # floor division by TILE_CELLS
         tu0, tv0 = int(tu.min()), int(tv.min())
         nt_u, nt_v = int(tu.max()) - tu0 + 1, int(tv.max()) - tv0 + 1
         if nt_u * nt_v > self.max_tiles // 2:
@@ -224,7 +227,7 @@ class Terrain:
         # touch every tile first, so that none needed here is evicted while filling others
         lut = np.array([[self._slot((tu0 + a, tv0 + b)) for b in range(nt_v)] for a in range(nt_u)], np.int64)
         L = len(self._LAYERS)
-        flat = lut[tu - tu0, tv - tv0] * (n * n) + (iu - tu * TILE_CELLS) * n + (iv - tv * TILE_CELLS)
+        flat = lut[tu - tu0, tv - tv0] * (n * n) + (iu & (TILE_CELLS - 1)) * n + (iv & (TILE_CELLS - 1))
         # items of two neighbouring cells (along v) with all their layers: one gather each
         pool = self._pool.reshape(-1)
         item = np.dtype((np.void, 2 * L * 4))
