@@ -39,6 +39,14 @@ def test_one_step_and_eval_through_the_cli(dataset, tmp_path):
     # a checkpoint of another preset is refused
     p = run_cli("eval", dataset, "--ckpt", tmp_path / "run" / "ckpt.pt", "--preset", "paper", cwd=tmp_path)
     assert p.returncode == 1 and "preset 'tiny'" in p.stderr
+    # a checkpoint whose config this version does not know (another gtgen) is refused in one line
+    import torch
+
+    state = torch.load(tmp_path / "run" / "ckpt.pt", map_location="cpu", weights_only=False)
+    state["train"]["prior_correction_m"] = 0.5
+    torch.save(state, tmp_path / "foreign.pt")
+    p = run_cli("eval", dataset, "--ckpt", tmp_path / "foreign.pt", cwd=tmp_path)
+    assert p.returncode == 1 and "Traceback" not in p.stderr and "does not accept (prior_correction_m" in p.stderr
 
 
 def test_overfitting_a_fixed_batch(dataset):

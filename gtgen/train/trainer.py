@@ -24,7 +24,7 @@ from gtgen.train.model import MMLite
 
 log = logging.getLogger(__name__)
 
-CKPT_VERSION = 1
+CKPT_VERSION = 2  # 2: heads correct a smoothed min-z prior (inputs "prior", "prior_micro")
 
 
 def preset_overrides(name: str) -> dict:
@@ -156,9 +156,18 @@ def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> dict:
     except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
         raise TrainError(f"checkpoint '{path}' cannot be read: {err}".splitlines()[0]) from err
     if not isinstance(state, dict) or state.get("version") != CKPT_VERSION:
-        raise TrainError(f"'{path}' is not a gtgen checkpoint of version {CKPT_VERSION}")
+        raise TrainError(f"'{path}' is not a gtgen checkpoint of version {CKPT_VERSION} (found {state.get('version') if isinstance(state, dict) else type(state).__name__!r}); retrain with this version")
     if tc is not None and state["preset"] != tc.preset:
         raise TrainError(f"checkpoint '{path}' is of preset {state['preset']!r}; expected {tc.preset!r}")
+    from pydantic import ValidationError
+
+    try:
+        TrainConfig.model_validate(state["train"])
+        GtgenConfig.model_validate(state["data_config"])
+    except (KeyError, ValidationError) as err:
+        first = err.errors()[0] if isinstance(err, ValidationError) else {"loc": (str(err),), "msg": "missing"}
+        where = ".".join(str(x) for x in first["loc"])
+        raise TrainError(f"checkpoint '{path}' holds a config this gtgen does not accept ({where}: {first['msg']}); retrain with this version") from err
     return state
 
 
