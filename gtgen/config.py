@@ -214,6 +214,7 @@ class TrainConfig(_Model):
     lam: float = Field(2.0, ge=0, description="elevation loss weight")
     gamma: float = Field(5.0, ge=0, description="consistency loss weight")
     elevation_clip_m: float = Field(25.0, gt=0, description="elevation clip, scaled to +-1 [m]")
+    elevation_beta_m: float = Field(0.2, gt=0, description="Smooth-L1 transition of the elevation and consistency losses [m]; the default 1 scaled unit (25 m) leaves decimetre errors almost no gradient")
     prior_window_m: float = Field(4.0, ge=0, description="window of the smoothed min-z prior the heads correct [m]")
     fatal_risk: float = Field(0.5, gt=0, lt=1, description="fatal-risk threshold for P/R/F1")
     lr: float = Field(5e-4, gt=0, description="peak learning rate (OneCycle)")
