@@ -16,7 +16,8 @@ m = build_model(tc, cfg).eval()
 S = 60000
 b = {"images": torch.randn(1, 4, 3, tc.image_height, tc.image_width), "K": torch.tensor([[[400., 0, 320], [0, 400, 198], [0, 0, 1]]]).repeat(1, 4, 1, 1),
      "T_target_cam": torch.eye(4).repeat(1, 4, 1, 1), "points": torch.randn(1, S, 3) * 40, "n_points": torch.tensor([S]),
-     "raw": torch.zeros(1, 2, tc.short_size, tc.short_size)}
+     "raw": torch.zeros(1, 2, tc.short_size, tc.short_size), "prior": torch.zeros(1, 2, tc.short_size, tc.short_size),
+     "prior_micro": torch.zeros(1, 2, tc.micro_size, tc.micro_size)}
 b["T_target_cam"][..., :3, :3] = torch.tensor([[0., 0, 1], [-1, 0, 0], [0, -1, 0]])
 with torch.no_grad():
     m(b); t = time.perf_counter(); m(b); dt = time.perf_counter() - t
