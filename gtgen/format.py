@@ -91,11 +91,6 @@ class RowAppender:
         self.buffered = 0
         self.written = 0
 
-    @property
-    def rows(self) -> int:
-        """Rows appended so far."""
-        return self.written + self.buffered
-
     def append(self, rows) -> None:
         if len(rows):
             self.buf.append(rows)
@@ -104,8 +99,6 @@ class RowAppender:
             self._flush(whole=True)
 
     def _flush(self, whole: bool) -> None:
-        import numpy as np
-
         if not self.buffered:
             return
         allr = np.concatenate(self.buf) if len(self.buf) > 1 else self.buf[0]

@@ -1,4 +1,5 @@
-"""The one progress helper: library code reports progress only through this."""
+"""The one progress helper (and the process pool that reports through it): library code
+reports progress only through this."""
 
 from __future__ import annotations
 
@@ -54,3 +55,33 @@ def track(items: Iterable[T], desc: str, total: float | None = None, status=None
             if handle is not None:
                 prog, task = handle  # type: ignore[misc]
                 prog.update(task, advance=1, description=f"{desc} {status()}" if status else desc)
+
+
+class ProcessJobs:
+    """Runs jobs (picklable functions and arguments) on a spawn process pool, in order;
+    with one worker, in this process. The pool lives until ``close``, so several rounds
+    of jobs pay for worker start-up once."""
+
+    def __init__(self, workers: int) -> None:
+        self.pool = None
+        if workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+    def map(self, fn, jobs: list[tuple], label: str | None = None) -> Iterator:
+        """Yield ``fn(*job)`` for each job in order; a progress bar over jobs if ``label``
+        (leave it out when the jobs show their own)."""
+        results = (fn(*j) for j in jobs) if self.pool is None else self.pool.map(fn, *zip(*jobs))
+        return results if label is None else track(results, label, total=len(jobs))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> ProcessJobs:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

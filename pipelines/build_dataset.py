@@ -271,10 +271,7 @@ class _Merger:
     def add(self, work: Path, res: DriveResult) -> None:
         import zarr
 
-        from gtgen.shards import schema as sc
-        from concurrent.futures import ThreadPoolExecutor
-
-        from gtgen.shards.writer import ShardWriter, copy_samples
+        from gtgen.shards.writer import ShardWriter
 
         self.next += 1
         if not res.ok:
@@ -285,34 +282,7 @@ class _Merger:
             W, H = a["image_size"]
             self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
             self.first_attrs = a
-        d = len(self.drives_attr)
-        S = int(g["meta/t_ns"].shape[0])
-        off = self.writer.n
-        self.writer._ensure(off + S)
-        src = work / res.name / "dataset.zarr"
-        def merge_array(p: str) -> None:
-            # shards move as encoded bytes; an array of another layout is decoded and re-encoded
-            if not copy_samples(g, src, self.writer.root, self.tmp, p, off, S):
-                arr = self.writer.arrays[p]
-                for a0 in range(0, S, sc.SAMPLES_PER_SHARD):
-                    arr[off + a0 : off + min(a0 + sc.SAMPLES_PER_SHARD, S)] = g[p][a0 : a0 + sc.SAMPLES_PER_SHARD]
-
-        # arrays are independent files, and file I/O releases the GIL: a few at a time
-        with ThreadPoolExecutor(max_workers=4) as io:
-            for _ in track(io.map(merge_array, list(self.writer.arrays)), f"build: merging {res.name}", total=len(self.writer.arrays)):
-                pass
-        if S:
-            self.writer.arrays["meta/drive"][off : off + S] = np.full(S, d, np.uint16)
-        voff = g["inputs/voxel_offsets"][:]
-        pts = g["inputs/voxel_points_m"]
-        step = max(1, int(pts.chunks[0]))
-        for p0 in range(0, int(voff[-1]) if len(voff) else 0, step):
-            self.writer.rows.append(pts[p0 : min(p0 + step, int(voff[-1]))])
-        base = self.writer.offsets[-1]
-        self.writer.offsets.extend((base + voff[1:]).tolist())
-        self.writer.n = off + S
-        for t, rs, f, r in zip(g["rejected/t_ns"][:], g["rejected/reason"][:], g["rejected/icp_fitness"][:], g["rejected/icp_rmse_m"][:]):
-            self.writer.reject(int(t), d, int(rs), float(f), float(r))
+        self.writer.append_dataset(g, work / res.name / "dataset.zarr", len(self.drives_attr), f"build: merging {res.name}")
         self.drives_attr.append({"name": res.name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})
 
     def close(self, results: list[DriveResult]) -> tuple[int, dict[str, int]]:

@@ -30,7 +30,7 @@ from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
 from gtgen.format import RowAppender, compressors
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
-from gtgen.progress import track
+from gtgen.progress import ProcessJobs
 
 log = logging.getLogger(__name__)
 
@@ -462,27 +462,6 @@ def _slices(bags: BagSet, workers: int, slices: int | None) -> list[tuple[int | 
     return bounds
 
 
-class _Jobs:
-    """Runs slice jobs in order on a spawn process pool (or in process for one worker)."""
-
-    def __init__(self, workers: int) -> None:
-        self.pool = None
-        if workers > 1:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-
-    def map(self, fn, jobs: list[tuple], label: str):
-        if self.pool is None:
-            return track((fn(*j) for j in jobs), label, total=len(jobs))
-        return track(self.pool.map(fn, *zip(*jobs)), label, total=len(jobs))
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-
-
 def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None) -> ExtractResult:
     """Read the bags of one drive into the drive store ``out`` (written atomically).
 
@@ -496,7 +475,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
 
     tmp = st.partial_path(out)
     shutil.rmtree(tmp, ignore_errors=True)
-    jobs = None
+    jobs: ProcessJobs | None = None
     hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the passes
     try:
         with BagSet(paths) as bags:
@@ -504,7 +483,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             roles = _roles(cfg, topics)
             bounds = _slices(bags, workers, slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths]
-        jobs = _Jobs(workers if len(bounds) > 1 else 1)
+        jobs = ProcessJobs(workers if len(bounds) > 1 else 1)
         parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b) for a, b in bounds], "extract: scanning"))
         counts = [p.counts() for p in parts]  # before merging: the merge grows parts[0]
         scan = parts[0]
@@ -518,8 +497,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         track_, warnings = _poses(cfg, scan)
         plan = _select(cfg, track_, scan)
         if len(plan.t) == 0:
-            counts = _reason_counts(plan.cand_reason)
-            raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {counts}")
+            raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {_reason_counts(plan.cand_reason)}")
         extr = _extrinsics(cfg, scan)
         root = zarr.open_group(str(tmp), mode="w")
         _write_small(root, cfg, scan, track_, plan, extr)
@@ -668,7 +646,7 @@ def _map_to_odom(cfg: GtgenConfig, static: dict[tuple[str, str], NDArray], g: Gr
 
 
 def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack,
-                 plan: _Plan, bounds: list, counts: list[dict[str, int]], jobs: _Jobs) -> None:
+                 plan: _Plan, bounds: list, counts: list[dict[str, int]], jobs: ProcessJobs) -> None:
     S = len(plan.t)
     W, H = cfg.extract.image_width, cfg.extract.image_height
     tp = cfg.topics
@@ -730,7 +708,6 @@ class _VoxelWriter:
     their turn) through a chunk-aligned appender; fills ``offsets``."""
 
     def __init__(self, arr, S: int, writes: _Writes) -> None:
-        self.S = S
         self.offsets = np.zeros(S + 1, np.int64)
         self.pending: dict[int, NDArray] = {}
         self.next = 0
@@ -744,8 +721,8 @@ class _VoxelWriter:
             self.rows.append(p)
             self.next += 1
 
-    def close(self) -> int:
-        return self.rows.close()
+    def close(self) -> None:
+        self.rows.close()
 
 
 @dataclass

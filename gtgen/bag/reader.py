@@ -126,17 +126,13 @@ class BagSet:
 
     # -- ros1msg-encoded bare MCAP: rosbags' rosbag2 reader only knows ROS 2 schemas --
     def _open_ros1_mcap(self) -> None:
-        from mcap.reader import make_reader
         from rosbags.typesys import get_types_from_msg
 
         self._store = typestore(True)
         self._topics: dict[str, TopicInfo] = {}
         self._span = [None, None]
-        for p in self.paths:
-            f = p.open("rb")
-            self._mcap_files.append(f)
-            reader = make_reader(f)
-            self._mcap_readers.append(reader)
+        self._open_mcap_readers()
+        for p, reader in zip(self.paths, self._mcap_readers):
             summary = reader.get_summary()
             if summary is None:
                 raise BagError(f"bag '{p}' has no summary section (truncated?)")

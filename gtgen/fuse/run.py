@@ -18,7 +18,7 @@ from gtgen.format import compressors
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
 from gtgen.geometry import quat_to_yaw
-from gtgen.progress import track
+from gtgen.progress import ProcessJobs, track
 
 log = logging.getLogger(__name__)
 
@@ -117,14 +117,8 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) ->
         step = cfg.fuse.chunk_samples
         # the micro jobs first: they are the long ones
         jobs = [(str(drive_path), str(tmp), r, lo, min(lo + step, S), cfg_json) for r in RANGES for lo in range(0, S, step)]
-        if workers > 1 and len(jobs) > 1:
-            from concurrent.futures import ProcessPoolExecutor
-            import multiprocessing as mp
-
-            with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as ex:
-                results = list(ex.map(_fuse_part, *zip(*jobs)))
-        else:
-            results = [_fuse_part(*j) for j in jobs]
+        with ProcessJobs(min(workers, len(jobs))) as pool:
+            results = list(pool.map(_fuse_part, jobs))
         reason = np.zeros(S, np.uint8)
         counts = {r: np.zeros(4, np.int64) for r in RANGES}
         loads = {r: 0 for r in RANGES}

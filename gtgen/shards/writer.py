@@ -66,6 +66,46 @@ class ShardWriter:
             self.offsets.append(self.offsets[-1] + len(p))
         self.n += len(points)
 
+    def append_dataset(self, src, src_path: Path, drive: int, label: str) -> int:
+        """Append every sample of the dataset store ``src`` (a zarr group opened at
+        ``src_path``) as drive index ``drive``; return how many.
+
+        Per-sample arrays move as encoded shard bytes where both layouts agree (see
+        ``copy_samples``; a few arrays at a time, as file I/O releases the GIL), else
+        they are decoded and re-encoded. Voxel points go through the chunk appender,
+        rejected samples into the rejection list.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        from gtgen.progress import track
+
+        if self.buffer:
+            raise RuntimeError("append_dataset after add: drives must stay shard-aligned")
+        S = int(src["meta/t_ns"].shape[0])
+        off = self.n
+        self._ensure(off + S)
+
+        def one(p: str) -> None:
+            if not copy_samples(src, src_path, self.root, self.path, p, off, S):
+                for a0 in range(0, S, sc.SAMPLES_PER_SHARD):
+                    self.arrays[p][off + a0 : off + min(a0 + sc.SAMPLES_PER_SHARD, S)] = src[p][a0 : a0 + sc.SAMPLES_PER_SHARD]
+
+        with ThreadPoolExecutor(max_workers=4) as io:
+            for _ in track(io.map(one, list(self.arrays)), label, total=len(self.arrays)):
+                pass
+        if S:
+            self.arrays["meta/drive"][off : off + S] = np.full(S, drive, np.uint16)
+        voff = src["inputs/voxel_offsets"][:]
+        pts = src["inputs/voxel_points_m"]
+        n_pts, step = (int(voff[-1]) if len(voff) else 0), int(pts.chunks[0])
+        for p0 in range(0, n_pts, step):
+            self.rows.append(pts[p0 : min(p0 + step, n_pts)])
+        self.offsets.extend((self.offsets[-1] + voff[1:]).tolist())
+        self.n = off + S
+        for t, rs, f, r in zip(src["rejected/t_ns"][:], src["rejected/reason"][:], src["rejected/icp_fitness"][:], src["rejected/icp_rmse_m"][:]):
+            self.reject(int(t), drive, int(rs), float(f), float(r))
+        return S
+
     def reject(self, t_ns: int, drive: int, reason: int, fitness: float = float("nan"), rmse: float = float("nan")) -> None:
         """Record a rejected sample."""
         self.rejected.append((t_ns, drive, reason, fitness, rmse))
@@ -155,7 +195,7 @@ def _copyable_meta(arr) -> dict | None:
 
 
 def _shard_file(root: Path, path: str, k: int, ndim: int) -> Path:
-    return root / path / "c" / str(k) / Path(*(["0"] * (ndim - 1))) if ndim > 1 else root / path / "c" / str(k)
+    return root.joinpath(path, "c", str(k), *(["0"] * (ndim - 1)))
 
 
 def read_shard(file: Path, n: int) -> list[bytes | None]:
@@ -197,16 +237,15 @@ def copy_samples(src, src_root: Path, dst, dst_root: Path, path: str, off: int, 
     meta = _copyable_meta(a)
     if meta is None or meta != _copyable_meta(b) or a.shape[0] < n or b.shape[0] < off + n:
         return False
-    K = int(b.metadata.to_dict()["chunk_grid"]["configuration"]["chunk_shape"][0])
-    Ks = int(a.metadata.to_dict()["chunk_grid"]["configuration"]["chunk_shape"][0])
+    K = int(meta["grid"]["configuration"]["chunk_shape"][0])  # samples per shard, the same in both
     cache: tuple[int, list] = (-1, [])
     for k in range(off // K, (off + n - 1) // K + 1):
         out = _shard_file(dst_root, path, k, a.ndim)
         chunks = read_shard(out, K)
         for g in range(max(off, k * K), min(off + n, (k + 1) * K)):
             s = g - off
-            if cache[0] != s // Ks:
-                cache = (s // Ks, read_shard(_shard_file(src_root, path, s // Ks, a.ndim), Ks))
-            chunks[g - k * K] = cache[1][s % Ks]
+            if cache[0] != s // K:
+                cache = (s // K, read_shard(_shard_file(src_root, path, s // K, a.ndim), K))
+            chunks[g - k * K] = cache[1][s % K]
         write_shard(out, chunks)
     return True

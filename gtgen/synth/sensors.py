@@ -196,8 +196,10 @@ class RenderRaster:
         self.u0, self.v0 = u0, v0
         nu = int(np.ceil((u1 - u0) / self.RES_M))
         nv = int(np.ceil((v1 - v0) / self.RES_M))
-        self.layers = np.empty((3, nu, nv), np.float32)
-        self._padded: NDArray[np.float32] | None = None
+        # a border of -inf cells around the raster: out-of-raster points clip onto it,
+        # so a lookup is one gather; ``layers`` is the interior
+        self._padded = np.full((3, nu + 2, nv + 2), -np.inf, np.float32)
+        self.layers = self._padded[:, 1:-1, 1:-1]
         block = 1024
         for i in range(0, nu, block):
             for j in range(0, nv, block):
@@ -210,18 +212,13 @@ class RenderRaster:
     def lookup(self, u: NDArray, v: NDArray, layer: int) -> NDArray[np.float32]:
         """Return the nearest raster value of ``layer`` at (u, v) relative to (u0, v0); -inf outside."""
         nu, nv = self.layers.shape[1:]
-        if self._padded is None:
-            # a border of -inf cells: out-of-raster points clip onto it, one gather per point
-            pad = np.full((3, nu + 2, nv + 2), -np.inf, np.float32)
-            pad[:, 1:-1, 1:-1] = self.layers
-            self._padded = pad.reshape(3, -1)
         i = np.floor(u * (1 / self.RES_M)).astype(np.int64)
         j = np.floor(v * (1 / self.RES_M)).astype(np.int64)
         np.clip(i + 1, 0, nu + 1, out=i)
         np.clip(j + 1, 0, nv + 1, out=j)
         i *= nv + 2
         i += j
-        return self._padded[layer].take(i)
+        return self._padded[layer].reshape(-1).take(i)
 
 
 N_STEPS = 64

@@ -205,19 +205,9 @@ class Terrain:
         The tiles under the points' bounding box are looked up once; each point then
         gathers its four neighbours from the tile pool by flat index (no sorting).
         """
-        u = np.asarray(u, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        shape = u.shape
-        if u.size == 0:
+        shape, iu, iv, au, av = _cells(u, v)
+        if iu.size == 0:
             return [np.zeros(shape, np.float32) for _ in layers]
-        fu = u.ravel() / TILE_RES_M
-        fv = v.ravel() / TILE_RES_M
-        iu = np.floor(fu)
-        iv = np.floor(fv)
-        au = (fu - iu).astype(np.float32)
-        av = (fv - iv).astype(np.float32)
-        iu = iu.astype(np.int64)
-        iv = iv.astype(np.int64)
         tu, tv = iu >> TILE_SHIFT, iv >> TILE_SHIFT  # floor division by TILE_CELLS
         tu0, tv0 = int(tu.min()), int(tv.min())
         nt_u, nt_v = int(tu.max()) - tu0 + 1, int(tv.max()) - tv0 + 1
@@ -229,9 +219,8 @@ class Terrain:
         L = len(self._LAYERS)
         flat = lut[tu - tu0, tv - tv0] * (n * n) + (iu & (TILE_CELLS - 1)) * n + (iv & (TILE_CELLS - 1))
         # items of two neighbouring cells (along v) with all their layers: one gather each
-        pool = self._pool.reshape(-1)
         item = np.dtype((np.void, 2 * L * 4))
-        pairs = np.ndarray((pool.size // L - 1,), dtype=item, buffer=self._pool, strides=(L * 4,))
+        pairs = np.ndarray((self._pool.size // L - 1,), dtype=item, buffer=self._pool, strides=(L * 4,))
         # (N, 2, L): cells (i, j), (i, j+1) and (i+1, j), (i+1, j+1)
         lo = pairs[flat].view(np.float32).reshape(-1, 2, L)
         hi = pairs[flat + n].view(np.float32).reshape(-1, 2, L)
@@ -247,19 +236,11 @@ class Terrain:
 
     def sample_grouped(self, u: NDArray, v: NDArray, layers: tuple[str, ...] = ("ground",)) -> list[NDArray[np.float32]]:
         """``sample`` tile by tile (points grouped by a sort): for huge extents, and the test oracle."""
-        u = np.asarray(u, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        shape = u.shape
-        fu = u.ravel() / TILE_RES_M
-        fv = v.ravel() / TILE_RES_M
-        iu = np.floor(fu).astype(np.int64)
-        iv = np.floor(fv).astype(np.int64)
-        au = (fu - iu).astype(np.float32)
-        av = (fv - iv).astype(np.float32)
+        shape, iu, iv, au, av = _cells(u, v)
         tu, tv = iu // TILE_CELLS, iv // TILE_CELLS
         lu, lv = iu - tu * TILE_CELLS, iv - tv * TILE_CELLS
         li = [self._LAYERS.index(name) for name in layers]
-        out = np.empty((len(li), fu.size), np.float32)
+        out = np.empty((len(li), iu.size), np.float32)
         keys = tu * 1_000_003 + tv
         order = np.argsort(keys, kind="stable")
         uniq, starts = np.unique(keys[order], return_index=True)
@@ -278,3 +259,15 @@ class Terrain:
                 t = tile[..., layer].ravel()
                 out[row, sel] = t[flat] * w00 + t[flat + n] * w10 + t[flat + 1] * w01 + t[flat + n + 1] * w11
         return [o.reshape(shape) for o in out]
+
+
+def _cells(u: NDArray, v: NDArray) -> tuple[tuple[int, ...], NDArray, NDArray, NDArray, NDArray]:
+    """Return (shape, iu, iv, au, av): the 0.1 m cell of each point (flattened) and its
+    bilinear weights along u and v."""
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    fu = u.ravel() / TILE_RES_M
+    fv = v.ravel() / TILE_RES_M
+    iu = np.floor(fu)
+    iv = np.floor(fv)
+    return u.shape, iu.astype(np.int64), iv.astype(np.int64), (fu - iu).astype(np.float32), (fv - iv).astype(np.float32)

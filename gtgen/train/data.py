@@ -68,6 +68,14 @@ class ShardDataset(Dataset):
         W_in, H_in = info.attrs["image_size"]
         self._img_ix = (nearest_index(H_in, tc.image_height), nearest_index(W_in, tc.image_width))
         self._img_src = (W_in, H_in)
+        # smoothing window of each range's prior, in that range's model cells (odd)
+        grids = self.data_cfg.grids
+        self._prior_win = {r: 2 * int(round(0.5 * tc.prior_window_m / (grids.get(r).length_m / getattr(tc, f"{r}_size")))) + 1 for r in ("micro", "short")}
+
+    def _scaled(self, grid: NDArray) -> torch.Tensor:
+        """Return (2, n, n): the elevation clipped and scaled to +-1 (0 where NaN), and its validity."""
+        clip = self.tc.elevation_clip_m
+        return torch.from_numpy(np.stack([np.nan_to_num(np.clip(grid, -clip, clip) / clip), np.isfinite(grid)]).astype(np.float32))
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -103,7 +111,7 @@ class ShardDataset(Dataset):
         out["points"] = torch.from_numpy(padded)
         out["n_points"] = torch.tensor(len(pts))
         raw = self._grid(g["inputs/raw_elevation_m"][k], "short")
-        out["raw"] = torch.from_numpy(np.stack([np.nan_to_num(np.clip(raw, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m), np.isfinite(raw)]).astype(np.float32))
+        out["raw"] = self._scaled(raw)
         for r in ("micro", "short"):
             el = self._grid(g[f"labels/{r}/elevation_m"][k], r)
             out[f"{r}/elevation"] = torch.from_numpy((np.clip(el, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m).astype(np.float32))
@@ -118,9 +126,7 @@ class ShardDataset(Dataset):
         raw_m = centre[np.ix_(nearest_index(centre.shape[0], tc.micro_size), nearest_index(centre.shape[1], tc.micro_size))]
         out["micro/raw_elevation"] = torch.from_numpy(raw_m.astype(np.float32))
         # the priors the heads correct, each range at its own resolution, scaled like "raw"
-        grids = self.data_cfg.grids
-        win = {r: 2 * int(round(0.5 * tc.prior_window_m / (grids.get(r).length_m / getattr(tc, f"{r}_size")))) + 1 for r in ("micro", "short")}
-        for key, grid_ in (("prior", smoothed_min_z(raw, win["short"])), ("prior_micro", smoothed_min_z(raw_m, win["micro"]))):
-            out[key] = torch.from_numpy(np.stack([np.nan_to_num(np.clip(grid_, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m), np.isfinite(grid_)]).astype(np.float32))
+        out["prior"] = self._scaled(smoothed_min_z(raw, self._prior_win["short"]))
+        out["prior_micro"] = self._scaled(smoothed_min_z(raw_m, self._prior_win["micro"]))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))
         return out

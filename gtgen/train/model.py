@@ -152,7 +152,7 @@ class MMLite(nn.Module):
         self.micro = nn.Sequential(ResBlock(cin + c, c), ResBlock(c, c))
         self.micro_refine = ResBlock(c, c)
         self.micro_head = nn.Conv2d(c, 2, 1)
-        # zero-initialised heads: training starts from the raw prior (and risk 0.5)
+        # zero-initialised heads: training starts from the smoothed min-z prior (and risk 0.5)
         for head in (self.short_head, self.micro_head):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)

@@ -98,7 +98,7 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
     if resume:
         if not ckpt_path.is_file():
             raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
-        state = _load_ckpt(ckpt_path, tc)
+        state, _, _ = _load_ckpt(ckpt_path, tc)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optim"])
         sched.load_state_dict(state["sched"])
@@ -148,7 +148,8 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
     return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
 
 
-def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> dict:
+def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:
+    """Return a checkpoint's state with its validated train and data configs."""
     if not path.is_file():
         raise TrainError(f"checkpoint '{path}' does not exist")
     try:
@@ -162,22 +163,18 @@ def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> dict:
     from pydantic import ValidationError
 
     try:
-        TrainConfig.model_validate(state["train"])
-        GtgenConfig.model_validate(state["data_config"])
+        return state, TrainConfig.model_validate(state["train"]), GtgenConfig.model_validate(state["data_config"])
     except (KeyError, ValidationError) as err:
         first = err.errors()[0] if isinstance(err, ValidationError) else {"loc": (str(err),), "msg": "missing"}
         where = ".".join(str(x) for x in first["loc"])
         raise TrainError(f"checkpoint '{path}' holds a config this gtgen does not accept ({where}: {first['msg']}); retrain with this version") from err
-    return state
 
 
 def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val") -> dict:
     """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (all if empty)."""
-    state = _load_ckpt(ckpt)
+    state, tc, data_cfg = _load_ckpt(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
-    tc = TrainConfig.model_validate(state["train"])
-    data_cfg = GtgenConfig.model_validate(state["data_config"])
     ds = ShardDataset(dataset, tc, split=split)
     used = split
     if len(ds) == 0:
@@ -219,9 +216,8 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
 
 def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarray]:
     """Return the model's maps for dataset sample ``index`` (elevation in metres)."""
-    state = _load_ckpt(ckpt)
-    tc = TrainConfig.model_validate(state["train"])
-    model = build_model(tc.model_copy(update={"backbone_weights": None}), GtgenConfig.model_validate(state["data_config"]))
+    state, tc, data_cfg = _load_ckpt(ckpt)
+    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
     model.load_state_dict(state["model"])
     model.eval()
     ds = ShardDataset(dataset, tc)
