@@ -151,6 +151,8 @@ def extract(
     rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
     rows += [(f"maps kept ({k})", v) for k, v in res.maps_kept.items()]
     rows += [(f"skew {k}", f"{v:.3f} s") for k, v in res.skew_s.items()]
+    if res.reread:
+        rows.append(("read twice", f"{res.reread} kept messages no slice had staged (stamps far from record times)"))
     rows += [("warning", w) for w in res.warnings]
     _table("gtgen extract", rows)
 

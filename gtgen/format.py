@@ -7,7 +7,10 @@ mirrors those lists and a test checks that they agree.
 
 from __future__ import annotations
 
+import os
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -122,3 +125,62 @@ class RowAppender:
         if self.arr.shape[0] != self.written:
             self.arr.resize((self.written, *self.arr.shape[1:]))
         return self.written
+
+
+# -- whole encoded chunks, written and moved as files ---------------------------------
+# A chunk of a (non-sharded) gtgen array is the zstd frame (``compressors()``) of its
+# C-order little-endian bytes, in the file ``<array>/c/<i>/<j>/...`` of a local store.
+# Writing such files directly skips zarr's per-call overhead and the copy that gathers
+# values into one write; a chunk's bytes do not depend on the array's shape, so a chunk
+# written once can be linked into another array of the same dtype and codecs.
+def encode_chunk(value: np.ndarray) -> bytes:
+    """Return the encoded bytes of one whole chunk holding ``value``, as zarr writes them
+    for an array with ``compressors()``."""
+    from numcodecs import Zstd
+
+    (codec,) = compressors()
+    v = np.ascontiguousarray(value)
+    if v.dtype.byteorder == ">":
+        v = v.astype(v.dtype.newbyteorder("<"))
+    return Zstd(level=codec.level, checksum=codec.checksum).encode(v)
+
+
+def check_encoded_chunks(arr) -> str:
+    """Return the chunk-key separator of zarr array ``arr``; raise ValueError unless it
+    stores chunks as :func:`encode_chunk` makes them, under default chunk keys."""
+    md = arr.metadata.to_dict()
+    (codec,) = compressors()
+    want = [{"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "zstd", "configuration": {"level": codec.level, "checksum": codec.checksum}}]
+    enc = md.get("chunk_key_encoding", {})
+    codecs = [{"name": c.get("name"), "configuration": c.get("configuration", {})} for c in md.get("codecs", [])]
+    if np.dtype(arr.dtype).itemsize == 1:  # single bytes have no endianness
+        codecs = [c if c["name"] != "bytes" else want[0] for c in codecs]
+    sep = enc.get("configuration", {}).get("separator", "/")
+    if codecs != want or enc.get("name") != "default" or sep not in "/.":
+        raise ValueError(f"array '{arr.path}' does not store chunks as gtgen encodes them: codecs {codecs}, keys {enc}")
+    return sep
+
+
+def chunk_file(store: Path, path: str, coords: tuple[int, ...], sep: str = "/") -> Path:
+    """Return the file of chunk ``coords`` of array ``path`` in a local zarr v3 store
+    whose default chunk keys use ``sep``."""
+    return store.joinpath(path, *sep.join(["c", *map(str, coords)]).split("/"))
+
+
+def place_chunk(src: Path, dst: Path, move: bool, made: set | None = None) -> None:
+    """Make chunk file ``dst`` hold the bytes of ``src``: renamed if ``move``, else a hard
+    link (a copy where links fail). ``made`` caches the folders already created."""
+    parent = dst.parent
+    if made is None or parent not in made:
+        parent.mkdir(parents=True, exist_ok=True)
+        if made is not None:
+            made.add(parent)
+    if move:
+        os.replace(src, dst)
+        return
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)

@@ -11,7 +11,7 @@ from conftest import REALDATA, SMALL, needs_realdata, run_cli, small_config
 from gtgen.bag.extract import run_extract
 from gtgen.bag.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
-from gtgen.bag.store import open_drive, partial_path
+from gtgen.bag.store import DRIVE_VERSION, open_drive, partial_path
 from gtgen.errors import BagError, DecodeError, GtgenError, InputNotFoundError, StoreError, TopicError
 
 
@@ -77,8 +77,12 @@ def test_extract_store_contents(drive_store, cfg):
     S = g["samples/t_ns"].shape[0]
     assert S > 10
     assert g["samples/images"].shape == (S, 4, 30, 48, 3)
-    off = g["samples/voxel_offsets"][:]
-    assert off[0] == 0 and np.all(np.diff(off) > 0) and off[-1] == g["voxel_points_odom_m"].shape[0]
+    vi, n = g["samples/voxel_index"][:], g["voxel_maps/n_points"][:]
+    V, P = g["voxel_maps/points_odom_m"].shape[:2]
+    assert np.all(np.diff(vi) >= 0) and set(vi.tolist()) == set(range(V)) and np.all((n > 0) & (n <= P))
+    assert np.all(np.diff(g["voxel_maps/t_ns"][:]) > 0)
+    pts = g["voxel_maps/points_odom_m"][int(vi[3])]
+    assert np.isfinite(pts[: n[vi[3]]]).all() and np.isnan(pts[n[vi[3]] :]).all()
     d = g["samples/distance_m"][:]
     assert np.all(np.diff(d) > 0.5 * cfg.extract.stride_m)
     # intrinsics rescaled from 64 x 40 to 48 x 30
@@ -98,7 +102,7 @@ def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp
     out = tmp_path / "from_bag.zarr"
     run_extract([drive_dir / "drive.bag"], out, cfg)
     a, b = open_drive(drive_store), open_drive(out)
-    for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_points_odom_m", "calib/T_base_cam"):
+    for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "calib/T_base_cam"):
         np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
     np.testing.assert_array_equal(a["maps/micro/elevation_m"][3], b["maps/micro/elevation_m"][3])
     np.testing.assert_array_equal(a["samples/images"][2], b["samples/images"][2])
@@ -237,7 +241,7 @@ def test_failed_extract_leaves_no_store_a_later_stage_accepts(drive_dir, tmp_pat
     zarr.open_group(str(partial_path(out)), mode="w").attrs["store"] = "gtgen-drive"
     with pytest.raises(StoreError, match="failed extract"):
         open_drive(out)
-    zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": 1, "complete": False})
+    zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": DRIVE_VERSION, "complete": False})
     with pytest.raises(StoreError, match="incomplete"):
         open_drive(out)
     zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": 0, "complete": True})
@@ -256,18 +260,38 @@ def test_cli_extract_summary_and_missing_file(drive_dir, tmp_path):
 
 def test_store_does_not_depend_on_workers_or_slices(drive_dir, drive_store, cfg, tmp_path):
     """Record-time slices on a process pool give the very arrays of one in-process pass."""
-    one, many = tmp_path / "one.zarr", tmp_path / "many.zarr"
-    run_extract([drive_dir / "drive.mcap"], one, cfg, workers=1, slices=1)
+    one, many, ref = tmp_path / "one.zarr", tmp_path / "many.zarr", tmp_path / "ref.zarr"
+    assert run_extract([drive_dir / "drive.mcap"], one, cfg, workers=1, slices=1).reread == 0
     run_extract([drive_dir / "drive.mcap"], many, cfg, workers=1, slices=7)
+    run_extract([drive_dir / "drive.mcap"], ref, cfg, workers=1, slices=3, staging=False)  # two passes
+    _assert_same_arrays(ref, one, many, drive_store)  # drive_store: 2 workers
 
-    def arrays(path):
-        return {k: v[...] for k, v in zarr.open_group(str(path), mode="r").members(max_depth=None) if isinstance(v, zarr.Array)}
 
-    a, b, c = arrays(one), arrays(many), arrays(drive_store)  # drive_store: 2 workers
-    assert a.keys() == b.keys() == c.keys() and len(a) > 20
-    for k in a:
-        assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
-        assert np.array_equal(a[k], c[k], equal_nan=a[k].dtype.kind == "f"), k
+def _arrays(path):
+    return {k: v[...] for k, v in zarr.open_group(str(path), mode="r").members(max_depth=None) if isinstance(v, zarr.Array)}
+
+
+def _assert_same_arrays(ref, *others):
+    a = _arrays(ref)
+    assert len(a) > 20
+    for other in others:
+        b = _arrays(other)
+        assert a.keys() == b.keys()
+        for k in a:
+            assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
+
+
+def test_single_pass_reads_again_what_no_slice_staged(drive_dir, cfg, tmp_path):
+    """Maps recorded 3 s after their stamps: a slice meets maps whose frames the slice
+    before it held, so its guesses miss; a targeted second pass reads those maps and the
+    store equals the two-pass reference."""
+    late = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "late.mcap",
+                        lambda topic, t, msg: [(t + 3_000_000_000 if "/map/" in topic else t, msg)])
+    a, ref = tmp_path / "a.zarr", tmp_path / "ref.zarr"
+    res = run_extract([late], a, cfg, workers=1, slices=4)
+    run_extract([late], ref, cfg, workers=1, slices=4, staging=False)
+    assert 0 < res.reread < (4 * res.n_samples + sum(res.maps_kept.values())) / 2  # most still staged
+    _assert_same_arrays(ref, a)
 
 
 # -- the direct MCAP chunk reader against the mcap library (the oracle) ---------------------------
@@ -314,3 +338,19 @@ def test_direct_mcap_reader_matches_mcap_library(tmp_path, compression):
 def test_direct_mcap_reader_on_a_synth_bag(drive_dir):
     topics = {"/xracer/odometry", "/xracer/map/micro", "/cam_front/image/compressed"}
     assert _direct_messages(drive_dir / "drive.mcap", topics, None, None) == _lib_messages(drive_dir / "drive.mcap", topics, None, None)
+
+
+def test_encoded_chunks_are_the_bytes_zarr_writes(tmp_path):
+    from gtgen.format import check_encoded_chunks, chunk_file, compressors, encode_chunk
+
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    v = np.random.default_rng(0).normal(size=(2, 5, 7)).astype(np.float32)
+    for sep in "/.":
+        a = root.create_array(f"a{sep == '.'}", shape=v.shape, dtype="float32", chunks=(1, 5, 7), compressors=compressors(),
+                              chunk_key_encoding={"name": "default", "separator": sep})
+        a[:] = v
+        assert check_encoded_chunks(a) == sep
+        assert chunk_file(tmp_path / "s.zarr", a.path, (1, 0, 0), sep).read_bytes() == encode_chunk(v[1])
+    other = root.create_array("b", shape=v.shape, dtype="float32", chunks=(1, 5, 7))  # zarr's default codecs
+    with pytest.raises(ValueError, match="does not store chunks"):
+        check_encoded_chunks(other)

@@ -1,19 +1,20 @@
 """``gtgen extract``: bags -> a time-indexed per-drive store.
 
-Two streaming passes, each split into record-time slices that run on ``workers``
-processes. The first reads the small topics (odometry, TF, GNSS, camera info) whole
-and notes the header stamps of the large ones (maps, voxel map, images); the merged
-slices fix the sample times and which large messages to keep. The second decodes just
-those and writes them into the store by index (one chunk per image and per map, so
-slices never write the same chunk). A slice spans at most ``SLICE_S`` of the bag, so
+One streaming read, split into record-time slices that run on ``workers`` processes.
+Each slice reads the small topics (odometry, TF, GNSS, camera info) whole, notes the
+header stamps of the large ones (maps, voxel map, images) and stages what the plan will
+likely keep (see "staging" below). The merged slices fix the sample times and the maps
+to keep; staged images and maps are linked into the store by chunk, and whatever no
+slice staged is read in a targeted second pass. One chunk per image and per map, so
+slices never write the same chunk. A slice spans at most ``SLICE_S`` of the bag, so
 memory stays flat in drive length; the store does not depend on the split.
 """
-
 from __future__ import annotations
 
 import hashlib
 import io
 import logging
+import shutil
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,12 +24,12 @@ from numpy.typing import NDArray
 
 from gtgen import reasons
 from gtgen.bag import store as st
-from gtgen.bag.gridmap import GridMapData, decode_gridmap
+from gtgen.bag.gridmap import decode_gridmap
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
-from gtgen.format import RowAppender, compressors
+from gtgen.format import check_encoded_chunks, chunk_file, compressors, encode_chunk, place_chunk
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
 from gtgen.progress import ProcessJobs
 
@@ -86,6 +87,7 @@ class ExtractResult:
     maps_kept: dict[str, int]
     skew_s: dict[str, float]
     warnings: list[str]
+    reread: int = 0  # kept messages no slice had staged, read in a second pass
 
 
 # -- role resolution ------------------------------------------------------------------
@@ -143,6 +145,7 @@ class _Scan:
     stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
     map_meta: dict[str, list[tuple[int, bool]]] = field(default_factory=lambda: defaultdict(list))
     map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution)
+    staged: _Staged | None = None  # what this slice staged (not merged by ``extend``)
 
     def counts(self) -> dict[str, int]:
         """Messages per role in this scan (decode failures included): the ordinal span."""
@@ -178,17 +181,24 @@ def _tf_matrix(tr: object) -> NDArray:
     return make_transform(quat_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([t.x, t.y, t.z]))
 
 
-def _scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], start: int | None, stop: int | None) -> _Scan:
-    """Pass 1 over the messages recorded in [start, stop) (a process-pool job)."""
+def _scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], start: int | None, stop: int | None,
+                store: str | None = None, k: int = 0) -> _Scan:
+    """The pass over the messages recorded in [start, stop) (a process-pool job). With a
+    ``store``, what the plan will likely keep is staged there as slice ``k``."""
     with BagSet(paths) as bags:
-        return _scan(bags.messages(list(roles), start, stop), cfg, roles)
+        if store is None:
+            return _scan(bags.messages(list(roles), start, stop), cfg, roles)
+        with _Stager(store, k, cfg) as stager:
+            scan = _scan(bags.messages(list(roles), start, stop), cfg, roles, stager.add)
+        scan.staged = stager.result
+        return scan
 
 
-def _scan(messages, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
+def _scan(messages, cfg: GtgenConfig, roles: dict[str, str], stage=None) -> _Scan:
     tp = cfg.topics
     scan = _Scan(stats={t: TopicStats(t, r) for t, r in roles.items()})
     layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
-    for topic, _, t_rec, msg, err in messages:
+    for topic, msgtype, t_rec, msg, err in messages:
         s = scan.stats[topic]
         role = roles[topic]
         s.count += 1
@@ -226,8 +236,12 @@ def _scan(messages, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
         elif role.startswith("camera."):
             scan.stamps[role].append(t)
             scan.frames.setdefault(role, hdr.frame_id.lstrip("/"))
+            if stage is not None:
+                stage(role, s.count - 1, t, msg, msgtype, True)
         elif role == "voxel_map":
             scan.stamps[role].append(t)
+            if stage is not None:
+                stage(role, s.count - 1, t, msg, msgtype, True)
         elif role.startswith("map."):
             names = list(msg.layers)
             ok = all(n in names for n in layer_names)
@@ -235,19 +249,182 @@ def _scan(messages, cfg: GtgenConfig, roles: dict[str, str]) -> _Scan:
                 s.decode_failures += 1
                 s.first_error = s.first_error or f"layers {names}; expected {layer_names} (topics.layers)"
             else:
-                vals = [np.asarray(msg.data[names.index(tp.layers.confidence)].data)]
-                ok = bool(np.any(np.isfinite(vals[0]) & (vals[0] > 0)))
+                ok = _any_confident(np.asarray(msg.data[names.index(tp.layers.confidence)].data))
                 if not ok:
                     s.first_error = s.first_error or "all-NaN or zero-confidence map"
                 elif role not in scan.map_shape:
                     g = decode_gridmap(msg, layer_names)
                     scan.map_shape[role] = (g.shape, g.resolution_m)
             scan.map_meta[role].append((t, ok))
+            if stage is not None:
+                stage(role, s.count - 1, t, msg, msgtype, ok)
     return scan
+
+
+def _any_confident(conf: NDArray) -> bool:
+    """True if any confidence value is finite and > 0 (a leading block decides most maps)."""
+    head = conf[:4096]
+    if np.any((head > 0) & (head < np.inf)):
+        return True
+    return bool(np.any((conf > 0) & (conf < np.inf)))
 
 
 def msg_quat(q: object) -> NDArray:
     return np.array([q.x, q.y, q.z, q.w])  # type: ignore[attr-defined]
+
+
+# -- staging: the single pass keeps what the plan will likely want ----------------------
+# The plan (sample times, kept maps) needs every stamp of the drive, so it exists only
+# once all slices are read. Rather than read the bags a second time, each slice stages
+# what the plan will likely keep while it reads: every image, every voxel cloud, the
+# earliest map of each thinning period and, for each front-camera frame (a sample time
+# is always one), the latest map stamped at or before it. Staged images and maps are
+# chunks of staging arrays that are then linked to their place in the store; anything
+# the plan wants but no slice staged (stamps far out of record order) is read in a
+# second, targeted pass. The store does not depend on what was staged.
+STAGE = "stage"  # group of the partial store holding staged data; removed before the store completes
+
+
+def _period_ns(cfg: GtgenConfig) -> int:
+    return int(1e9 / cfg.extract.map_rate_hz)
+
+
+@dataclass
+class _Staged:
+    """What one slice staged: the slice ordinals staged per role (chunk files named by
+    ordinal), map poses as stamped (frames resolved later), voxel clouds in .npy files."""
+
+    k: int
+    dir: str
+    ordinals: dict[str, set[int]] = field(default_factory=lambda: defaultdict(set))
+    map_pose: dict[tuple[str, int], tuple[NDArray, float, str]] = field(default_factory=dict)
+    map_shape: dict[str, tuple[int, int]] = field(default_factory=dict)
+    voxels: dict[int, tuple[int, int]] = field(default_factory=dict)  # ordinal -> (points, stamp); -1 points: raw .npy
+
+    def chunk(self, role: str, i: int, layer: str = "") -> Path:
+        """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
+        return Path(self.dir) / (f"{role}.{layer}" if layer else role) / str(i)
+
+    def raw_voxels(self, i: int) -> Path:
+        """Return the .npy file of voxel map ``i`` staged in its own frame (base_link)."""
+        return Path(self.dir) / "voxel_map.raw" / f"{i}.npy"
+
+
+class _Stager:
+    """Stages images, voxel clouds and likely maps of one slice as encoded chunk files in
+    ``<store>/stage/<k>`` (written on threads)."""
+
+    def __init__(self, store: str, k: int, cfg: GtgenConfig) -> None:
+        self.cfg = cfg
+        self.result = _Staged(k, str(Path(store) / STAGE / str(k)))
+        tp = cfg.topics
+        self.layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
+        self.period = _period_ns(cfg)
+        self.bin_first: dict[str, dict[int, int]] = defaultdict(dict)  # role -> {period: earliest stamp staged}
+        self.held: dict[str, list[tuple[int, int, object]]] = defaultdict(list)  # role -> [(stamp, ordinal, msg)]
+        self.pending: dict[str, list[int]] = defaultdict(list)  # role -> front stamps awaiting their map
+        self.made: set[Path] = set()
+
+    def __enter__(self) -> _Stager:
+        self.writes = _Writes().__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if exc[0] is None:
+                for role in list(self.held):
+                    for h in self.held[role]:  # the next slice's first frames may want them
+                        self._stage_map(role, h)
+        finally:
+            self.writes.__exit__(*exc)
+
+    def _write(self, file: Path, value: NDArray) -> None:
+        if file.parent not in self.made:
+            file.parent.mkdir(parents=True, exist_ok=True)
+            self.made.add(file.parent)
+        self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
+
+    def add(self, role: str, i: int, t: int, msg: object, msgtype: str, ok: bool) -> None:
+        """Take message ``i`` (slice ordinal) of a large role, stamped ``t``; ``ok`` is
+        False for a map the plan cannot use."""
+        if role.startswith("camera."):
+            self._stage_image(role, i, msg, msgtype)
+            if role == "camera.front":
+                for r in RANGES:
+                    self.pending[f"map.{r}"].append(t)
+                    self._resolve(f"map.{r}")
+        elif role == "voxel_map":
+            self._stage_voxel(i, t, msg)
+        elif ok:
+            b = t // self.period
+            if t < self.bin_first[role].get(b, t + 1):
+                self.bin_first[role][b] = t
+                self._stage_map(role, (t, i, msg))
+            self.held[role].append((t, i, msg))
+            self._resolve(role)
+
+    def _stage_image(self, role: str, i: int, msg: object, msgtype: str) -> None:
+        W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
+        try:
+            img = resize_image(decode_image(msg, msgtype), W, H)
+        except DecodeError:
+            return  # staged nothing: if the plan wants it, the targeted pass reports the error
+        self._write(self.result.chunk(role, i), img)
+        self.result.ordinals[role].add(i)
+
+    def _stage_voxel(self, i: int, t: int, msg: object) -> None:
+        tp = self.cfg.topics
+        frame = msg.header.frame_id.lstrip("/")  # type: ignore[attr-defined]
+        if frame not in ("", tp.odom_frame, tp.base_frame):
+            return
+        try:
+            pts = decode_pointcloud(msg)
+        except DecodeError:
+            return
+        if frame == tp.base_frame:  # to odom once the whole pose track is known
+            f = self.result.raw_voxels(i)
+            f.parent.mkdir(parents=True, exist_ok=True)
+            np.save(f, pts)
+            self.result.voxels[i] = (-1, t)
+            return
+        pts = _nearest_points(pts, self.cfg.shards.max_voxel_points)
+        self._write(self.result.chunk("voxel_map", i), _padded(pts, self.cfg.shards.max_voxel_points))
+        self.result.voxels[i] = (len(pts), t)
+
+    def _resolve(self, role: str) -> None:
+        """Stage, for each front frame older than the newest map, the latest map stamped at
+        or before it; keep held only the maps a later frame may still want."""
+        held = self.held[role]
+        if not held:
+            return
+        newest = max(h[0] for h in held)
+        still = []
+        for tf in self.pending[role]:
+            if tf < newest:
+                before = [h for h in held if h[0] <= tf]
+                if before:
+                    self._stage_map(role, max(before, key=lambda h: h[0]))
+            else:
+                still.append(tf)
+        self.pending[role] = still
+        m = min(still) if still else newest
+        floor = max((h[0] for h in held if h[0] <= m), default=min(h[0] for h in held))
+        self.held[role] = [h for h in held if h[0] >= floor]
+
+    def _stage_map(self, role: str, h: tuple[int, int, object]) -> None:
+        _, i, msg = h
+        if i in self.result.ordinals[role]:
+            return
+        try:
+            g = decode_gridmap(msg, self.layer_names)
+        except DecodeError:
+            return
+        if g.shape != self.result.map_shape.setdefault(role, g.shape):
+            return  # a size change: the targeted pass reports it if the plan wants this map
+        for name, layer in zip(MAP_LAYERS, self.layer_names):
+            self._write(self.result.chunk(role, i, name), g.layers[layer])
+        self.result.ordinals[role].add(i)
+        self.result.map_pose[(role, i)] = (g.center_m, g.yaw_rad, g.frame_id)
 
 
 # -- selection ---------------------------------------------------------------------------
@@ -278,8 +455,10 @@ class _Plan:
     cand_reason: NDArray
     image_ord: NDArray  # (S, 4) ordinal of the image message per camera
     image_t: NDArray
-    voxel_ord: NDArray
-    voxel_t: NDArray
+    voxel_t: NDArray  # (S,)
+    voxel_index: NDArray  # (S,) index into the kept voxel maps
+    voxel_ord: NDArray  # (V,) ordinals of the kept voxel maps, sorted by stamp
+    voxel_map_t: NDArray  # (V,)
     map_ord: dict[str, NDArray]  # kept map ordinals per range, sorted by stamp
     map_t: dict[str, NDArray]
     sample_map: dict[str, NDArray]  # (S,) index into kept maps
@@ -327,26 +506,24 @@ def _select(cfg: GtgenConfig, track_: PoseTrack, scan: _Scan) -> _Plan:
         map_near[r] = (ms, mo, mi)
     keep = reason == 0
     t_k = t[keep]
+    vk = np.unique(vi[keep])  # kept voxel maps, in stamp order
     map_ord: dict[str, NDArray] = {}
     map_t: dict[str, NDArray] = {}
     sample_map: dict[str, NDArray] = {}
-    period = int(1e9 / ex.map_rate_hz)
+    period = _period_ns(cfg)
     for r, (ms, mo, mi) in map_near.items():
-        chosen = set()
-        last = None
-        for k in range(len(ms)):  # greedy thinning over message stamps (one pass, small)
-            if last is None or ms[k] - last >= period - 1_000_000:
-                chosen.add(k)
-                last = ms[k]
-        chosen.update(mi[keep].tolist())
-        ks = np.array(sorted(chosen), dtype=np.int64)
+        # thinning: the earliest valid map of each period (a rule each slice can apply alone)
+        bins = ms // period
+        first_in_bin = np.nonzero(np.r_[True, bins[1:] != bins[:-1]])[0] if len(ms) else np.zeros(0, np.int64)
+        ks = np.union1d(first_in_bin, mi[keep]).astype(np.int64)
         map_ord[r] = mo[ks] if len(ks) else np.zeros(0, np.int64)
         map_t[r] = ms[ks] if len(ks) else np.zeros(0, np.int64)
         sample_map[r] = np.searchsorted(ks, mi[keep]) if len(ks) else np.zeros(0, np.int64)
     return _Plan(
         t=t_k, cand_t=t, cand_reason=reason,
         image_ord=img_ord[keep], image_t=img_t[keep],
-        voxel_ord=vo[vi[keep]] if len(vo) else np.zeros(0, np.int64), voxel_t=vs[vi[keep]] if len(vs) else np.zeros(0, np.int64),
+        voxel_t=vs[vi[keep]] if len(vs) else np.zeros(0, np.int64), voxel_index=np.searchsorted(vk, vi[keep]),
+        voxel_ord=vo[vk] if len(vo) else np.zeros(0, np.int64), voxel_map_t=vs[vk] if len(vs) else np.zeros(0, np.int64),
         map_ord=map_ord, map_t=map_t, sample_map=sample_map,
     )
 
@@ -439,10 +616,12 @@ def hash_bag(path: Path) -> str:
     """Return the sha256 of a bag file, or of a rosbag2 folder's files in name order."""
     h = hashlib.sha256()
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    buf = bytearray(1 << 20)  # one reused buffer: fresh blocks cost page faults
+    view = memoryview(buf)
     for f in files:
-        with f.open("rb") as fh:
-            for block in iter(lambda: fh.read(1 << 22), b""):
-                h.update(block)
+        with f.open("rb", buffering=0) as fh:
+            while n := fh.readinto(buf):
+                h.update(view[:n])
     return h.hexdigest()
 
 
@@ -462,13 +641,15 @@ def _slices(bags: BagSet, workers: int, slices: int | None) -> list[tuple[int | 
     return bounds
 
 
-def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None) -> ExtractResult:
+def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None,
+                staging: bool = True) -> ExtractResult:
     """Read the bags of one drive into the drive store ``out`` (written atomically).
 
-    Each pass runs as record-time slices on ``workers`` processes (``slices`` fixes
-    their number, for tests); the store does not depend on either.
+    The bags are read as record-time slices on ``workers`` processes (``slices`` fixes
+    their number, for tests), once: each slice stages what the plan will likely keep.
+    ``staging=False`` stages nothing and reads the kept messages in a second pass (the
+    two-pass reference). The store depends on none of the three.
     """
-    import shutil
     from concurrent.futures import ThreadPoolExecutor
 
     import zarr
@@ -478,14 +659,18 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
     jobs: ProcessJobs | None = None
     hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the passes
     try:
+        jobs = ProcessJobs(workers, warm=__name__)  # workers start while the bags open
         with BagSet(paths) as bags:
             topics = bags.topics()
             roles = _roles(cfg, topics)
             bounds = _slices(bags, workers, slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths]
-        jobs = ProcessJobs(workers if len(bounds) > 1 else 1)
-        parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b) for a, b in bounds], "extract: scanning"))
+        root = zarr.open_group(str(tmp), mode="w")
+        stage = str(tmp) if staging else None
+        parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b, stage, k) for k, (a, b) in enumerate(bounds)],
+                              "extract: reading"))
         counts = [p.counts() for p in parts]  # before merging: the merge grows parts[0]
+        staged = [p.staged for p in parts] if staging else []
         scan = parts[0]
         for part in parts[1:]:
             scan.extend(part)
@@ -499,9 +684,8 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         if len(plan.t) == 0:
             raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {_reason_counts(plan.cand_reason)}")
         extr = _extrinsics(cfg, scan)
-        root = zarr.open_group(str(tmp), mode="w")
         _write_small(root, cfg, scan, track_, plan, extr)
-        _write_large(root, tmp, paths, cfg, roles, scan, track_, plan, bounds, counts, jobs)
+        reread = _write_large(root, tmp, paths, cfg, roles, scan, track_, plan, bounds, counts, staged, jobs)
         result = ExtractResult(
             store=out,
             topics=[s.summary() for s in scan.stats.values()],
@@ -511,6 +695,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             maps_kept={r: len(plan.map_t[r]) for r in RANGES},
             skew_s=_skews(plan),
             warnings=warnings,
+            reread=reread,
         )
         from gtgen.config import save_config
 
@@ -520,7 +705,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             "config": cfg.model_dump(mode="json"),
             "report": {"topics": result.topics, "n_candidates": result.n_candidates, "n_samples": result.n_samples,
                        "rejected": result.rejected, "maps_kept": result.maps_kept, "skew_s": result.skew_s,
-                       "warnings": warnings},
+                       "reread": reread, "warnings": warnings},
             "reasons": reasons.REASONS,
             "image_size": [cfg.extract.image_width, cfg.extract.image_height],
             "cameras": list(CAMERAS),
@@ -593,10 +778,13 @@ def _extrinsics(cfg: GtgenConfig, scan: _Scan) -> dict[str, tuple[NDArray, NDArr
     return out
 
 
-def _create(root, path: str, shape: tuple, chunks: tuple | None = None):
+def _create(root, path: str, shape: tuple, chunks: tuple | None = None, flat: bool = False):
+    """Create drive-store array ``path``; ``flat`` keys its chunks 'c.i.j...' (one folder)."""
     sp = st.spec(path)
     chunks = chunks or tuple(max(1, s) for s in shape)
-    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value(), compressors=compressors())
+    keys = {"name": "default", "separator": "." if flat else "/"}
+    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value(), compressors=compressors(),
+                             chunk_key_encoding=keys)
 
 
 def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _Plan, extr) -> None:
@@ -630,106 +818,147 @@ def _write_small(root, cfg: GtgenConfig, scan: _Scan, track_: PoseTrack, plan: _
         _create(root, f"samples/map_index_{r}", (S,))[:] = plan.sample_map[r]
     _create(root, "samples/image_t_ns", (S, 4))[:] = plan.image_t
     _create(root, "samples/voxel_t_ns", (S,))[:] = plan.voxel_t
+    _create(root, "samples/voxel_index", (S,))[:] = plan.voxel_index
+    _create(root, "voxel_maps/t_ns", plan.voxel_map_t.shape)[:] = plan.voxel_map_t
     _create(root, "calib/K", (4, 3, 3))[:] = np.stack([extr[c][0] for c in CAMERAS])
     _create(root, "calib/T_base_cam", (4, 4, 4))[:] = np.stack([extr[c][1] for c in CAMERAS])
 
 
-def _map_to_odom(cfg: GtgenConfig, static: dict[tuple[str, str], NDArray], g: GridMapData) -> tuple[NDArray, float]:
-    """Return the grid centre and yaw in odom, through tf_static if the map frame differs."""
-    if g.frame_id in ("", cfg.topics.odom_frame):
-        return g.center_m, g.yaw_rad
-    T = _chain(static, cfg.topics.odom_frame, g.frame_id)
+def _map_to_odom(cfg: GtgenConfig, static: dict[tuple[str, str], NDArray], center: NDArray, yaw: float, frame: str
+                 ) -> tuple[NDArray, float]:
+    """Return a grid's centre and yaw in odom, through tf_static if its frame differs."""
+    if frame in ("", cfg.topics.odom_frame):
+        return center, yaw
+    T = _chain(static, cfg.topics.odom_frame, frame)
     if T is None:
-        raise DecodeError(f"GridMap frame '{g.frame_id}' has no static transform to '{cfg.topics.odom_frame}'")
-    Tc = T @ yaw_transform(*g.center_m, g.yaw_rad)
+        raise DecodeError(f"GridMap frame '{frame}' has no static transform to '{cfg.topics.odom_frame}'")
+    Tc = T @ yaw_transform(*center, yaw)
     return Tc[:3, 3], float(np.arctan2(Tc[1, 0], Tc[0, 0]))
 
 
 def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: _Scan, track_: PoseTrack,
-                 plan: _Plan, bounds: list, counts: list[dict[str, int]], jobs: ProcessJobs) -> None:
+                 plan: _Plan, bounds: list, counts: list[dict[str, int]], staged: list[_Staged], jobs: ProcessJobs) -> int:
+    """Put the plan's images, maps and voxel clouds in the store: staged ones by moving
+    their chunk files, the rest read by a targeted pass over the slices that hold them.
+    Return how many kept messages that pass read."""
     S = len(plan.t)
     W, H = cfg.extract.image_width, cfg.extract.image_height
     tp = cfg.topics
-    _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3))
+    _create(root, "samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3), flat=True)
     for r in RANGES:
         shape, res = scan.map_shape[f"map.{r}"]
         for name in MAP_LAYERS:
-            _create(root, f"maps/{r}/{name}", (len(plan.map_t[r]),) + shape, chunks=(1,) + shape)
+            _create(root, f"maps/{r}/{name}", (len(plan.map_t[r]),) + shape, chunks=(1,) + shape, flat=True)
         root[f"maps/{r}"].attrs.update({"resolution_m": res, "shape": list(shape), "frame": tp.odom_frame})
     # which (role, ordinal) goes where
     want: dict[str, dict[int, list[int]]] = defaultdict(lambda: defaultdict(list))
     for c_i, c in enumerate(CAMERAS):
         for s_i, o in enumerate(plan.image_ord[:, c_i]):
             want[f"camera.{c}"][int(o)].append(s_i)
-    for s_i, o in enumerate(plan.voxel_ord):
-        want["voxel_map"][int(o)].append(s_i)
+    for v, o in enumerate(plan.voxel_ord):
+        want["voxel_map"][int(o)].append(v)
     for r in RANGES:
         for k_i, o in enumerate(plan.map_ord[r]):
             want[f"map.{r}"][int(o)].append(k_i)
-    big = [t for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"]
-    big_roles = {t: roles[t] for t in big}
-    work = []
-    first = {role: 0 for role in big_roles.values()}  # ordinal of each role's first message in the slice
-    for (a, b), n in zip(bounds, counts):
-        part = {role: {o: t for o, t in want[role].items() if first[role] <= o < first[role] + n[role]} for role in big_roles.values()}
-        work.append((paths, cfg, big_roles, str(tmp), a, b, dict(first), part, scan.static, track_))
+    big_roles = {t: r for t, r in roles.items() if r.startswith(("camera.", "map.")) or r == "voxel_map"}
+    firsts: list[dict[str, int]] = []  # per slice: ordinal of each role's first message in it
+    first = {role: 0 for role in big_roles.values()}
+    for n in counts:
+        firsts.append(dict(first))
         for role in big_roles.values():
             first[role] += n[role]
-    vox_pts = _create(root, "voxel_points_odom_m", (16 * VOXEL_CHUNK, 3), chunks=(VOXEL_CHUNK, 3))
+    starts = {role: np.array([f[role] for f in firsts], np.int64) for role in big_roles.values()}
+
+    def locate(role: str, o: int) -> tuple[_Staged | None, int]:
+        k = int(np.searchsorted(starts[role], o, side="right")) - 1
+        return (staged[k] if staged else None), o - int(starts[role][k])
+
     centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
     yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
+    missing: dict[str, dict[int, list[int]]] = defaultdict(dict)
+    made: set[Path] = set()
+    seps: dict[str, str] = {}
+
+    def place(src: Path, dst_path: str, coords: list[tuple[int, ...]]) -> None:
+        if dst_path not in seps:
+            seps[dst_path] = check_encoded_chunks(root[dst_path])
+        for n, c in enumerate(coords):  # the last use takes the file, earlier ones link to it
+            place_chunk(src, chunk_file(tmp, dst_path, c, seps[dst_path]), move=n == len(coords) - 1, made=made)
+
+    for c_i, c in enumerate(CAMERAS):
+        role = f"camera.{c}"
+        for o, targets in want[role].items():
+            stg, i = locate(role, o)
+            if stg is None or i not in stg.ordinals[role]:
+                missing[role][o] = targets
+                continue
+            place(stg.chunk(role, i), "samples/images", [(s_i, c_i, 0, 0, 0) for s_i in targets])
+    for r in RANGES:
+        role = f"map.{r}"
+        for o, targets in want[role].items():
+            stg, i = locate(role, o)
+            if stg is None or i not in stg.ordinals[role] or stg.map_shape.get(role) != scan.map_shape[role][0]:
+                missing[role][o] = targets
+                continue
+            for name in MAP_LAYERS:
+                place(stg.chunk(role, i, name), f"maps/{r}/{name}", [(k_i, 0, 0) for k_i in targets])
+            center, yaw = _map_to_odom(cfg, scan.static, *stg.map_pose[(role, i)])
+            centers[r][targets] = center
+            yaws[r][targets] = yaw
+    P = cfg.shards.max_voxel_points
+    V = len(plan.voxel_ord)
+    vox = _create(root, "voxel_maps/points_odom_m", (V, P, 3), chunks=(1, P, 3), flat=True)
+    n_points = np.zeros(V, np.int64)
+    raw: list[tuple[int, Path, int]] = []  # (index, .npy, stamp) of voxel maps staged in base_link
+    for o, targets in want["voxel_map"].items():
+        stg, i = locate("voxel_map", o)
+        got = stg.voxels.get(i) if stg else None
+        if got is None:
+            missing["voxel_map"][o] = targets
+        elif got[0] < 0:
+            raw += [(v, stg.raw_voxels(i), got[1]) for v in targets]
+        else:
+            place(stg.chunk("voxel_map", i), "voxel_maps/points_odom_m", [(v, 0, 0) for v in targets])
+            n_points[targets] = got[0]
     seen = 0
     with _Writes() as writes:
-        voxels = _VoxelWriter(vox_pts, S, writes)
-        for got in jobs.map(_write_slice, work, "extract: writing"):
+        work = []
+        for k, ((a, b), n) in enumerate(zip(bounds, counts)):
+            part = {role: {o: t for o, t in missing[role].items() if firsts[k][role] <= o < firsts[k][role] + n[role]}
+                    for role in big_roles.values()}
+            if any(part.values()):
+                work.append((paths, cfg, big_roles, str(tmp), a, b, firsts[k], part, scan.static, track_))
+        for got in jobs.map(_write_slice, work, "extract: reading what no slice staged") if work else ():
             seen += got.selected
             for (r, k_i), (c, y) in got.maps.items():
                 centers[r][k_i] = c
                 yaws[r][k_i] = y
-            for s_i, pts in got.voxels.items():
-                voxels.add(s_i, pts)
-        voxels.close()
-    n_want = sum(len(v) for v in want.values())
-    if seen != n_want or voxels.next != S:
-        raise BagError(f"bags ended before every selected message was read ({seen} of {n_want} messages)")
-    _create(root, "samples/voxel_offsets", (S + 1,))[:] = voxels.offsets
+            for v, pts in got.voxels.items():
+                n_points[v] = len(pts)
+                writes.submit(vox.__setitem__, v, _padded(pts, P))
+        for v, f, t in raw:
+            pts = _nearest_points(_base_to_odom(np.load(f), t, track_), P)
+            n_points[v] = len(pts)
+            writes.submit(vox.__setitem__, v, _padded(pts, P))
+    n_missing = sum(len(v) for v in missing.values())
+    log.debug("extract: %d kept messages not staged: %s", n_missing, {r: len(v) for r, v in missing.items() if v})
+    if seen != n_missing:
+        raise BagError(f"bags ended before every selected message was read ({seen} of {n_missing} messages)")
+    _create(root, "voxel_maps/n_points", (V,))[:] = n_points
     for r in RANGES:
         _create(root, f"maps/{r}/t_ns", plan.map_t[r].shape)[:] = plan.map_t[r]
         _create(root, f"maps/{r}/center_odom_m", centers[r].shape)[:] = centers[r]
         _create(root, f"maps/{r}/yaw_odom_rad", yaws[r].shape)[:] = yaws[r]
+    shutil.rmtree(tmp / STAGE, ignore_errors=True)
+    return n_missing
 
 
 MAP_LAYERS = ("elevation_m", "risk", "confidence")
-VOXEL_CHUNK = 65536  # voxel points per chunk of the flat array
-
-
-class _VoxelWriter:
-    """Writes each sample's voxel points in sample order (samples may arrive ahead of
-    their turn) through a chunk-aligned appender; fills ``offsets``."""
-
-    def __init__(self, arr, S: int, writes: _Writes) -> None:
-        self.offsets = np.zeros(S + 1, np.int64)
-        self.pending: dict[int, NDArray] = {}
-        self.next = 0
-        self.rows = RowAppender(arr, write=writes.submit, before_resize=writes.drain)
-
-    def add(self, s_i: int, pts: NDArray) -> None:
-        self.pending[s_i] = pts
-        while self.next in self.pending:
-            p = self.pending.pop(self.next)
-            self.offsets[self.next + 1] = self.offsets[self.next] + len(p)
-            self.rows.append(p)
-            self.next += 1
-
-    def close(self) -> None:
-        self.rows.close()
-
-
 @dataclass
 class _SliceOut:
     selected: int
     maps: dict[tuple[str, int], tuple[NDArray, float]]
-    voxels: dict[int, NDArray]
+    voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
 
 
 class _Writes:
@@ -743,8 +972,9 @@ class _Writes:
         self.pending: list = []
         return self
 
-    def submit(self, arr, index, value) -> None:
-        self.pending.append(self.pool.submit(arr.__setitem__, index, value))
+    def submit(self, fn, *args) -> None:
+        """Run ``fn(*args)`` on the pool."""
+        self.pending.append(self.pool.submit(fn, *args))
         while len(self.pending) > 8:
             self.pending.pop(0).result()
 
@@ -785,12 +1015,16 @@ class _Runs:
 
     def _flush(self, key: tuple) -> None:
         arr, start, values = self.runs.pop(key)
-        self.writes.submit(arr, (slice(start, start + len(values)),) + key[1], np.stack(values))
+        self.writes.submit(arr.__setitem__, (slice(start, start + len(values)),) + key[1], np.stack(values))
+
+    def flush(self) -> None:
+        """Submit every gathered run."""
+        for key in list(self.runs):
+            self._flush(key)
 
     def __exit__(self, *exc: object) -> None:
         if exc[0] is None:
-            for key in list(self.runs):
-                self._flush(key)
+            self.flush()
 
 
 def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
@@ -827,15 +1061,15 @@ def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], sto
                     runs.put(images, s_i, img, (c_i,))
             elif role == "voxel_map":
                 pts = _voxel_points(msg, cfg, track_)
-                for s_i in targets:
-                    out.voxels[s_i] = pts
+                for v in targets:
+                    out.voxels[v] = pts
             else:
                 r = role.split(".")[1]
                 g = decode_gridmap(msg, list(layer_names))
                 arr = maps[r]
                 if g.shape != tuple(arr["elevation_m"].shape[1:]):
                     raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
-                center, yaw = _map_to_odom(cfg, static, g)
+                center, yaw = _map_to_odom(cfg, static, g.center_m, g.yaw_rad, g.frame_id)
                 for k_i in targets:
                     for name, layer in zip(MAP_LAYERS, layer_names):
                         runs.put(arr[name], k_i, g.layers[layer])
@@ -851,12 +1085,26 @@ def _voxel_points(msg, cfg: GtgenConfig, track_: PoseTrack) -> NDArray[np.float3
     if frame not in ("", tp.odom_frame):
         if frame != tp.base_frame:
             raise DecodeError(f"voxel map frame '{frame}' unsupported; expected '{tp.odom_frame}' or '{tp.base_frame}'")
-        T = track_.transforms(np.array([stamp_ns(msg.header)]))[0]
-        pts = (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-    n = cfg.shards.max_voxel_points
-    if len(pts) > n:
-        # keep the points nearest the vehicle (the far ones matter least), in message order
-        c = pts[:, :2].mean(axis=0)
-        d2 = np.square(pts[:, 0] - c[0]) + np.square(pts[:, 1] - c[1])
-        pts = pts[np.sort(np.argpartition(d2, n - 1)[:n])]
-    return pts
+        pts = _base_to_odom(pts, stamp_ns(msg.header), track_)
+    return _nearest_points(pts, cfg.shards.max_voxel_points)
+
+
+def _padded(pts: NDArray[np.float32], n: int) -> NDArray[np.float32]:
+    """Return ``pts`` (at most ``n``) as an (n, 3) block, NaN after the last point."""
+    out = np.full((n, 3), np.nan, np.float32)
+    out[: len(pts)] = pts
+    return out
+
+
+def _base_to_odom(pts: NDArray[np.float32], t: int, track_: PoseTrack) -> NDArray[np.float32]:
+    T = track_.transforms(np.array([t]))[0]
+    return (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+def _nearest_points(pts: NDArray[np.float32], n: int) -> NDArray[np.float32]:
+    """Return the ``n`` points nearest the cloud's xy centroid (the far ones matter least), in order."""
+    if len(pts) <= n:
+        return pts
+    c = pts[:, :2].mean(axis=0)
+    d2 = np.square(pts[:, 0] - c[0]) + np.square(pts[:, 1] - c[1])
+    return pts[np.sort(np.argpartition(d2, n - 1)[:n])]

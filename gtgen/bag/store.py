@@ -17,7 +17,7 @@ from gtgen.errors import StoreError
 from gtgen.format import ArraySpec, find
 
 DRIVE_STORE = "gtgen-drive"
-DRIVE_VERSION = 1
+DRIVE_VERSION = 2
 
 _MAPS: list[ArraySpec] = []
 for _r in RANGES:
@@ -52,8 +52,10 @@ DRIVE_ARRAYS: list[ArraySpec] = [
     ArraySpec("samples/images", "uint8", "(S, 4, H, W, 3)", "RGB", "camera", "-", "front, left, right, back; resized to extract.image_*"),
     ArraySpec("samples/image_t_ns", "int64", "(S, 4)", "ns", "-", "-", "stamp of each image"),
     ArraySpec("samples/voxel_t_ns", "int64", "(S,)", "ns", "-", "-", "stamp of the voxel map used"),
-    ArraySpec("samples/voxel_offsets", "int64", "(S + 1,)", "-", "-", "-", "sample s owns voxel_points[offsets[s]:offsets[s+1]]"),
-    ArraySpec("voxel_points_odom_m", "float32", "(P, 3)", "m", "odom", "-", "voxel map points of every sample, flat"),
+    ArraySpec("samples/voxel_index", "int64", "(S,)", "-", "-", "-", "index into voxel_maps of the voxel map used"),
+    ArraySpec("voxel_maps/t_ns", "int64", "(V,)", "ns", "-", "-", "stamps of the voxel maps some sample uses"),
+    ArraySpec("voxel_maps/n_points", "int64", "(V,)", "-", "-", "-", "points of each voxel map (at most shards.max_voxel_points)"),
+    ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
     ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
     ArraySpec("calib/T_base_cam", "float64", "(4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics from tf_static"),
 ]

@@ -325,7 +325,7 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     drive, fused, index, cfg = _OPEN[key]
     gs = cfg.grids.short
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
-    offsets = drive["samples/voxel_offsets"][:]
+    vox_index, vox_n = drive["samples/voxel_index"][:], drive["voxel_maps/n_points"][:]
     K, T_base_cam = drive["calib/K"][:], drive["calib/T_base_cam"][:]
     samples, points = [], []
     for k, T_crs_target, fit_k, rmse_k, T_corr in items:
@@ -334,7 +334,8 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
         yaw = float(quat_to_yaw(quat))
         sample = _sample_arrays(fused, index, k, T_crs_target, grids)
         T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
-        pts = drive["voxel_points_odom_m"][offsets[k] : offsets[k + 1]].astype(np.float64)
+        v = vox_index[k]
+        pts = drive["voxel_maps/points_odom_m"][v, : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
         sample.update({
             "inputs/images": drive["samples/images"][k],
