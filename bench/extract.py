@@ -17,7 +17,7 @@ with AnyReader([Path(sys.argv[1])], default_typestore=typestore(False)) as r:
 if __name__ == "__main__":
     header("bench/extract.py")
     rss = {}
-    for dur in (30, 120):
+    for dur in (30, 60, 120):  # 60 s is the default synth duration
         d = drive(dur)
         ws = fresh_workspace(f"ws_extract_{dur}")
         t_ex, rss[dur] = run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])

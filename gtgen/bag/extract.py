@@ -132,7 +132,7 @@ def _roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, str]:
     return roles
 
 
-# -- pass 1 -----------------------------------------------------------------------------
+# -- the read (one pass over the bags, in slices) --------------------------------------
 @dataclass
 class _Scan:
     stats: dict[str, TopicStats]
@@ -1029,8 +1029,9 @@ class _Runs:
 
 def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
                  first: dict[str, int], want: dict[str, dict[int, list[int]]], static: dict, track_: PoseTrack) -> _SliceOut:
-    """Pass 2 over [start, stop) (a process-pool job): decode the selected messages,
-    write images and maps into their chunks; return map poses and voxel points."""
+    """The targeted second pass over [start, stop) (a process-pool job): decode the kept
+    messages in ``want``, write images and maps into their chunks; return map poses and
+    voxel points."""
     import zarr
 
     tp = cfg.topics
