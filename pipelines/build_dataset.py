@@ -49,6 +49,7 @@ class DriveResult:
     kept: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    bag_sha256: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -104,13 +105,14 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
     return drives
 
 
-def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path) -> str:
-    """Return the hash of one drive unit's inputs."""
+def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path, bag_sha256: list[str] | None = None) -> str:
+    """Return the hash of one drive unit's inputs (``bag_sha256``: the bags' own hashes,
+    computed here if not given)."""
     from gtgen.bag.extract import hash_bag
 
     h = hashlib.sha256()
-    for b in bags:
-        h.update(hash_bag(b).encode())
+    for b, bh in zip(bags, bag_sha256 or [hash_bag(b) for b in bags]):
+        h.update(bh.encode())
     h.update(json.dumps(cfg_json, sort_keys=True).encode())
     for t in sorted(dem_dir.glob("*.tif")):
         st = t.stat()
@@ -119,8 +121,10 @@ def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path) -> str:
     return h.hexdigest()
 
 
-def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json: dict) -> DriveResult:
-    """Run extract, fuse and dem-align for one drive (a picklable task for any executor)."""
+def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json: dict,
+                  bag_sha256: list[str] | None = None) -> DriveResult:
+    """Run extract, fuse and dem-align for one drive (a picklable task for any executor);
+    the bags are hashed while extract reads them unless ``bag_sha256`` gives the hashes."""
     from gtgen.bag.extract import run_extract
     from gtgen.dem.run import run_dem_align
     from gtgen.fuse.run import run_fuse
@@ -132,7 +136,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
     res = DriveResult(name, ok=False)
     try:
         t = time.perf_counter()
-        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=1)
+        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=1, bag_sha256=bag_sha256)
         res.seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
         run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=1)
@@ -143,7 +147,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
     except GtgenError as err:
         res.error = f"{type(err).__name__}: {err}"
         return res
-    res.ok, res.samples, res.kept = True, ex.n_samples, al.n_kept
+    res.ok, res.samples, res.kept, res.bag_sha256 = True, ex.n_samples, al.n_kept, ex.bag_sha256
     res.rejected = {**ex.rejected, **al.rejected}
     return res
 
@@ -175,14 +179,18 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     work.mkdir(parents=True, exist_ok=True)
     cfg_json = cfg.model_dump(mode="json")
     todo, results = [], {}
+    dems = {name: dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem") for name, bags in drives.items()}
     for name, bags in drives.items():
-        ddir = dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem")
-        digest = unit_hash(bags, cfg_json, ddir)
-        done = _already_done(work / name, digest)
-        if done is not None:
-            results[name] = done
-        else:
-            todo.append((name, [str(b) for b in bags], str(ddir), str(work), cfg_json, digest))
+        hashes = None
+        if (work / name / DONE).is_file():  # hash now only to compare; otherwise extract hashes as it reads
+            from gtgen.bag.extract import hash_bag
+
+            hashes = [hash_bag(b) for b in bags]
+            done = _already_done(work / name, unit_hash(bags, cfg_json, dems[name], hashes))
+            if done is not None:
+                results[name] = done
+                continue
+        todo.append((name, [str(b) for b in bags], str(dems[name]), str(work), cfg_json, hashes))
     # drives are merged in their order as soon as they (and all before them) are done,
     # so the merge overlaps with the drives still running
     merger = _Merger(out, cfg)
@@ -193,9 +201,9 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
             merger.add(work, results[order[merger.next]])
 
     merge_ready()
-    for res, digest in _execute(todo, workers, scheduler):
+    for res in _execute(todo, workers, scheduler):
         if res.ok:
-            _mark_done(work / res.name, digest, res)
+            _mark_done(work / res.name, unit_hash(drives[res.name], cfg_json, dems[res.name], res.bag_sha256), res)
         results[res.name] = res
         merge_ready()
     ordered = [results[n] for n in drives]
@@ -204,20 +212,20 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
 
 
 def _execute(todo: list[tuple], workers: int, scheduler: str | None):
-    """Yield (DriveResult, input hash) for each unit, as they finish."""
+    """Yield the DriveResult of each unit, as they finish."""
     if not todo:
         return
     if scheduler:
         from dask.distributed import Client, as_completed
 
         with Client(scheduler) as client:
-            futs = {client.submit(process_drive, *t[:5], pure=False): t[5] for t in todo}
+            futs = [client.submit(process_drive, *t, pure=False) for t in todo]
             for fut in track(as_completed(futs), "build: drives", total=len(futs)):
-                yield fut.result(), futs[fut]
+                yield fut.result()
         return
     if workers <= 1:
         for t in track(todo, "build: drives"):
-            yield process_drive(*t[:5]), t[5]
+            yield process_drive(*t)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
@@ -225,9 +233,9 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
     # longest drives first, so that no worker is left with a long drive at the end
     todo = sorted(todo, key=lambda t: -sum(_size(Path(b)) for b in t[1]))
     with _one_thread_each(), ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
-        futs = {ex.submit(process_drive, *t[:5]): t[5] for t in todo}
+        futs = [ex.submit(process_drive, *t) for t in todo]
         for fut in track(done_first(futs), "build: drives", total=len(futs)):
-            yield fut.result(), futs[fut]
+            yield fut.result()
 
 
 def _size(path: Path) -> int:

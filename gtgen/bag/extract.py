@@ -88,6 +88,7 @@ class ExtractResult:
     skew_s: dict[str, float]
     warnings: list[str]
     reread: int = 0  # kept messages no slice had staged, read in a second pass
+    bag_sha256: list[str] = field(default_factory=list)  # of each bag, in the order given
 
 
 # -- role resolution ------------------------------------------------------------------
@@ -642,13 +643,14 @@ def _slices(bags: BagSet, workers: int, slices: int | None) -> list[tuple[int | 
 
 
 def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None,
-                staging: bool = True) -> ExtractResult:
+                staging: bool = True, bag_sha256: list[str] | None = None) -> ExtractResult:
     """Read the bags of one drive into the drive store ``out`` (written atomically).
 
     The bags are read as record-time slices on ``workers`` processes (``slices`` fixes
     their number, for tests), once: each slice stages what the plan will likely keep.
     ``staging=False`` stages nothing and reads the kept messages in a second pass (the
-    two-pass reference). The store depends on none of the three.
+    two-pass reference). The store depends on none of the three. ``bag_sha256``, the
+    bags' hashes if the caller has them already, spares hashing them again.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -664,7 +666,9 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             topics = bags.topics()
             roles = _roles(cfg, topics)
             bounds = _slices(bags, workers, slices)
-        hashes = [hasher.submit(hash_bag, p) for p in paths]
+        if bag_sha256 is not None and len(bag_sha256) != len(paths):
+            raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
+        hashes = [hasher.submit(lambda h=h, p=p: h or hash_bag(p)) for p, h in zip(paths, bag_sha256 or [None] * len(paths))]
         root = zarr.open_group(str(tmp), mode="w")
         stage = str(tmp) if staging else None
         parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b, stage, k) for k, (a, b) in enumerate(bounds)],
@@ -696,12 +700,13 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             skew_s=_skews(plan),
             warnings=warnings,
             reread=reread,
+            bag_sha256=[h.result() for h in hashes],
         )
         from gtgen.config import save_config
 
         root.attrs.update(st.jsonable({
             "store": st.DRIVE_STORE, "version": st.DRIVE_VERSION, "complete": True,
-            "bags": [{"path": str(p.resolve()), "sha256": h.result()} for p, h in zip(paths, hashes)],
+            "bags": [{"path": str(p.resolve()), "sha256": h} for p, h in zip(paths, result.bag_sha256)],
             "config": cfg.model_dump(mode="json"),
             "report": {"topics": result.topics, "n_candidates": result.n_candidates, "n_samples": result.n_samples,
                        "rejected": result.rejected, "maps_kept": result.maps_kept, "skew_s": result.skew_s,
