@@ -8,7 +8,8 @@ Each drive is one unit of work written under ``OUT/drives/<name>/``; a unit is d
 when its ``done.json`` (written last, atomically) records the hash of its inputs (bag
 sha256s, resolved config, gtgen version). A re-run skips done units and redoes changed
 ones; a killed run leaves only ``.partial`` stores, which the re-run replaces. Every
-stage is deterministic, so the result is the same however the work was split.
+stage is deterministic, so the result is the same however the work was split. The
+dataset holds the drives largest bags first (ties by name), the order they run in.
 """
 
 from __future__ import annotations
@@ -191,10 +192,12 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
                 results[name] = done
                 continue
         todo.append((name, [str(b) for b in bags], str(dems[name]), str(work), cfg_json, hashes))
-    # drives are merged in their order as soon as they (and all before them) are done,
-    # so the merge overlaps with the drives still running
+    # drives run largest bags first, so that no worker is left with a long drive at the
+    # end, and the dataset holds them in that same order: each is merged as soon as it and
+    # all before it are done, so merging overlaps with the drives still running
+    order = sorted(drives, key=lambda n: (-sum(_size(b) for b in drives[n]), n))
+    todo.sort(key=lambda t: order.index(t[0]))
     merger = _Merger(out, cfg)
-    order = list(drives)
 
     def merge_ready() -> None:
         while merger.next < len(order) and order[merger.next] in results:
@@ -206,7 +209,7 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
             _mark_done(work / res.name, unit_hash(drives[res.name], cfg_json, dems[res.name], res.bag_sha256), res)
         results[res.name] = res
         merge_ready()
-    ordered = [results[n] for n in drives]
+    ordered = [results[n] for n in order]
     n, split = merger.close(ordered)
     return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
 
@@ -230,8 +233,6 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
 
-    # longest drives first, so that no worker is left with a long drive at the end
-    todo = sorted(todo, key=lambda t: -sum(_size(Path(b)) for b in t[1]))
     with _one_thread_each(), ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
         futs = [ex.submit(process_drive, *t) for t in todo]
         for fut in track(done_first(futs), "build: drives", total=len(futs)):

@@ -49,13 +49,15 @@ def _same(a: dict, b: dict) -> None:
 def pool_build(drives, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("pool")
     res = build_dataset([drives], None, out, small_config(), workers=2)
-    assert [r.name for r in res.drives] == ["a", "b", "c"] and all(r.ok for r in res.drives)
+    assert sorted(r.name for r in res.drives) == ["a", "b", "c"] and all(r.ok for r in res.drives)
     assert res.n_samples > 0 and set(np.unique(_arrays(out)["meta/drive"])) == {0, 1, 2}
     g = zarr.open_group(str(out / "dataset.zarr"), mode="r")
     prov = g.attrs["provenance"]
     assert "numpy" in prov["dependencies"] and len(prov["units"]) == 3
     assert all(len(b["sha256"]) == 64 for d in g.attrs["drives"] for b in d["bags"])
-    assert len(g.attrs["drives"][2]["bags"]) == 2
+    assert [len(d["bags"]) for d in g.attrs["drives"] if d["name"] == "c"] == [2]
+    sizes = [sum(b.stat().st_size for b in (drives / d["name"]).glob("*.mcap")) for d in g.attrs["drives"]]
+    assert sizes == sorted(sizes, reverse=True)  # largest bags first: the order the drives ran in
     return out
 
 
@@ -106,7 +108,7 @@ def test_corrupt_bag_fails_its_drive_only(drives, tmp_path):
     text = " ".join(p.stdout.replace("│", " ").split())
     assert "drive z_bad FAILED" in text and "truncated or corrupt" in text
     g = zarr.open_group(str(tmp_path / "o" / "dataset.zarr"), mode="r")
-    assert [d["name"] for d in g.attrs["drives"]] == ["a", "b"]
+    assert sorted(d["name"] for d in g.attrs["drives"]) == ["a", "b"]
 
 
 def test_merged_dataset_is_the_drives_end_to_end(pool_build):
@@ -115,9 +117,11 @@ def test_merged_dataset_is_the_drives_end_to_end(pool_build):
     from gtgen.shards import schema as sc
 
     g = zarr.open_group(str(pool_build / "dataset.zarr"), mode="r")
-    parts = [zarr.open_group(str(pool_build / "drives" / n / "dataset.zarr"), mode="r") for n in ("a", "b", "c")]
+    names = [d["name"] for d in g.attrs["drives"]]
+    assert sorted(names) == ["a", "b", "c"]
+    parts = [zarr.open_group(str(pool_build / "drives" / n / "dataset.zarr"), mode="r") for n in names]
     sizes = [p["meta/t_ns"].shape[0] for p in parts]
-    assert g["meta/t_ns"].shape[0] == sum(sizes) and sizes[0] % sc.SAMPLES_PER_SHARD != 0  # drive b starts mid-shard
+    assert g["meta/t_ns"].shape[0] == sum(sizes) and sizes[0] % sc.SAMPLES_PER_SHARD != 0  # the second drive starts mid-shard
     for s in sc.DATASET_ARRAYS:
         if s.path.startswith(("rejected/", "inputs/voxel_")) or s.path == "meta/drive":
             continue

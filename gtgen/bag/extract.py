@@ -279,10 +279,11 @@ def msg_quat(q: object) -> NDArray:
 # once all slices are read. Rather than read the bags a second time, each slice stages
 # what the plan will likely keep while it reads: every image, every voxel cloud, the
 # earliest map of each thinning period and, for each front-camera frame (a sample time
-# is always one), the latest map stamped at or before it. Staged images and maps are
-# chunks of staging arrays that are then linked to their place in the store; anything
-# the plan wants but no slice staged (stamps far out of record order) is read in a
-# second, targeted pass. The store does not depend on what was staged.
+# is always one), the latest map stamped at or before it. Each is written as the encoded
+# chunk file it will be in the store (``format.encode_chunk``), and once the plan exists
+# the kept ones are moved into place by rename; anything the plan wants but no slice
+# staged (stamps far out of record order) is read in a second, targeted pass. The store
+# does not depend on what was staged.
 STAGE = "stage"  # group of the partial store holding staged data; removed before the store completes
 
 
@@ -293,7 +294,8 @@ def _period_ns(cfg: GtgenConfig) -> int:
 @dataclass
 class _Staged:
     """What one slice staged: the slice ordinals staged per role (chunk files named by
-    ordinal), map poses as stamped (frames resolved later), voxel clouds in .npy files."""
+    ordinal), map poses as stamped (frames resolved later), voxel point counts (voxel
+    maps in base_link are kept raw in .npy files, for the pose track to place)."""
 
     k: int
     dir: str
