@@ -127,6 +127,45 @@ class RowAppender:
         return self.written
 
 
+class Runs:
+    """Gathers writes to consecutive indices of one array into one zarr call: zarr's
+    per-call overhead is paid once per run instead of once per chunk. ``submit(fn,
+    *args)`` runs each gathered write (for example on a thread pool); by default here."""
+
+    LIMIT = 8  # indices per call
+
+    def __init__(self, submit=None) -> None:
+        self.submit = submit or (lambda fn, *args: fn(*args))
+        self.runs: dict[tuple, tuple[object, int, list]] = {}
+
+    def __enter__(self) -> Runs:
+        return self
+
+    def put(self, arr, index: int, value, rest: tuple = ()) -> None:
+        """Write ``value`` at ``arr[(index,) + rest]``, batched along ``index``."""
+        key = (id(arr), rest)
+        run = self.runs.get(key)
+        if run is not None and run[1] + len(run[2]) == index and len(run[2]) < self.LIMIT:
+            run[2].append(value)
+            return
+        if run is not None:
+            self._flush(key)
+        self.runs[key] = (arr, index, [value])
+
+    def _flush(self, key: tuple) -> None:
+        arr, start, values = self.runs.pop(key)
+        self.submit(arr.__setitem__, (slice(start, start + len(values)),) + key[1], np.stack(values))
+
+    def flush(self) -> None:
+        """Write every gathered run."""
+        for key in list(self.runs):
+            self._flush(key)
+
+    def __exit__(self, *exc: object) -> None:
+        if exc[0] is None:
+            self.flush()
+
+
 # -- whole encoded chunks, written and moved as files ---------------------------------
 # A chunk of a (non-sharded) gtgen array is the zstd frame (``compressors()``) of its
 # C-order little-endian bytes, in the file ``<array>/c/<i>/<j>/...`` of a local store.

@@ -29,7 +29,7 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
-from gtgen.format import check_encoded_chunks, chunk_file, compressors, encode_chunk, place_chunk
+from gtgen.format import Runs, check_encoded_chunks, chunk_file, compressors, encode_chunk, place_chunk
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
 from gtgen.progress import ProcessJobs
 
@@ -996,44 +996,6 @@ class _Writes:
             self.pool.shutdown(wait=True)
 
 
-class _Runs:
-    """Gathers writes to consecutive indices of one array into one zarr call: zarr's
-    per-call overhead is paid once per run instead of once per chunk."""
-
-    LIMIT = 8  # indices per call
-
-    def __init__(self, writes: _Writes) -> None:
-        self.writes = writes
-        self.runs: dict[tuple, tuple[object, int, list]] = {}
-
-    def __enter__(self) -> _Runs:
-        return self
-
-    def put(self, arr, index: int, value: NDArray, rest: tuple = ()) -> None:
-        """Write ``value`` at ``arr[(index,) + rest]``, batched along ``index``."""
-        key = (id(arr), rest)
-        run = self.runs.get(key)
-        if run is not None and run[1] + len(run[2]) == index and len(run[2]) < self.LIMIT:
-            run[2].append(value)
-            return
-        if run is not None:
-            self._flush(key)
-        self.runs[key] = (arr, index, [value])
-
-    def _flush(self, key: tuple) -> None:
-        arr, start, values = self.runs.pop(key)
-        self.writes.submit(arr.__setitem__, (slice(start, start + len(values)),) + key[1], np.stack(values))
-
-    def flush(self) -> None:
-        """Submit every gathered run."""
-        for key in list(self.runs):
-            self._flush(key)
-
-    def __exit__(self, *exc: object) -> None:
-        if exc[0] is None:
-            self.flush()
-
-
 def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
                  first: dict[str, int], want: dict[str, dict[int, list[int]]], static: dict, track_: PoseTrack) -> _SliceOut:
     """The targeted second pass over [start, stop) (a process-pool job): decode the kept
@@ -1051,7 +1013,7 @@ def _write_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], sto
     if not any(want.values()):
         return out
     ordinal = dict(first)
-    with BagSet(paths) as bags, _Writes() as writes, _Runs(writes) as runs:
+    with BagSet(paths) as bags, _Writes() as writes, Runs(writes.submit) as runs:
         for topic, msgtype, _, msg, err in bags.messages(list(roles), start, stop):
             role = roles[topic]
             o = ordinal[role]

@@ -327,23 +327,29 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
     vox_index, vox_n = drive["samples/voxel_index"][:], drive["voxel_maps/n_points"][:]
     K, T_base_cam = drive["calib/K"][:], drive["calib/T_base_cam"][:]
+    # one read per array for the block's span of samples: zarr's cost per call, not per chunk, dominates
+    k0, k1 = items[0][0], items[-1][0] + 1
+    span = {name: fused[name][k0:k1] for name in _FUSED_READ}
+    span.update({name: drive[name][k0:k1] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")})
+    v0, v1 = int(vox_index[k0]), int(vox_index[k1 - 1]) + 1
+    vox = drive["voxel_maps/points_odom_m"][v0:v1]
     samples, points = [], []
     for k, T_crs_target, fit_k, rmse_k, T_corr in items:
-        pos = drive["samples/pos_odom_m"][k]
-        quat = drive["samples/quat_odom_xyzw"][k]
+        pos = span["samples/pos_odom_m"][k - k0]
+        quat = span["samples/quat_odom_xyzw"][k - k0]
         yaw = float(quat_to_yaw(quat))
-        sample = _sample_arrays(fused, index, k, T_crs_target, grids)
+        sample = _sample_arrays({name: a[k - k0] for name, a in span.items() if name in _FUSED_READ}, index, T_crs_target, grids)
         T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
         v = vox_index[k]
-        pts = drive["voxel_maps/points_odom_m"][v, : vox_n[v]].astype(np.float64)
+        pts = vox[v - v0, : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
         sample.update({
-            "inputs/images": drive["samples/images"][k],
+            "inputs/images": span["samples/images"][k - k0],
             "inputs/K": K,
             "inputs/T_base_cam": T_base_cam,
             "inputs/T_target_base": T_target_base,
             "inputs/raw_elevation_m": _raw_min_z(pts_t, gs.size, gs.resolution_m),
-            "meta/t_ns": np.int64(drive["samples/t_ns"][k]),
+            "meta/t_ns": np.int64(span["samples/t_ns"][k - k0]),
             "meta/drive": np.uint16(0),
             "meta/pos_odom_m": pos,
             "meta/yaw_odom_rad": np.float64(yaw),
@@ -360,21 +366,27 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     return points
 
 
-def _sample_arrays(fused, index: TileIndex, k: int, T_crs_target: NDArray, grids) -> dict[str, NDArray]:
+_FUSED_READ = tuple(f"{g}/{r}/{name}" for r in RANGES for g, names in (
+    ("fused", ("region", "elevation_m", "risk", "confidence", "count", "last_dt_s")), ("xracer", ("elevation_m", "risk", "confidence")))
+    for name in names)
+
+
+def _sample_arrays(fused: dict[str, NDArray], index: TileIndex, T_crs_target: NDArray, grids) -> dict[str, NDArray]:
+    """Return one sample's label, X-Racer and DEM arrays from its fused arrays (by path)."""
     out: dict[str, NDArray] = {}
     for r in RANGES:
         X, Y = grids[r]
         dem = _dem_patch(index, T_crs_target, X, Y)
-        region = fused[f"fused/{r}/region"][k].copy()
-        elev = fused[f"fused/{r}/elevation_m"][k]
+        region = fused[f"fused/{r}/region"].copy()
+        elev = fused[f"fused/{r}/elevation_m"]
         unobs = region == 3
         elev = np.where(unobs, dem, elev).astype(np.float32)
         region[unobs & ~np.isfinite(dem)] = 0
         out[f"labels/{r}/elevation_m"] = elev
         out[f"labels/{r}/region"] = region
         for name in ("risk", "confidence", "count", "last_dt_s"):
-            out[f"labels/{r}/{name}"] = fused[f"fused/{r}/{name}"][k]
+            out[f"labels/{r}/{name}"] = fused[f"fused/{r}/{name}"]
         for name in ("elevation_m", "risk", "confidence"):
-            out[f"xracer/{r}/{name}"] = fused[f"xracer/{r}/{name}"][k]
+            out[f"xracer/{r}/{name}"] = fused[f"xracer/{r}/{name}"]
         out[f"dem/{r}/elevation_m"] = dem
     return out

@@ -14,7 +14,7 @@ from gtgen.bag import store as drive_store
 from gtgen.config import RANGES, GtgenConfig, save_config
 from gtgen.errors import StoreError
 from gtgen.fuse import store as fs
-from gtgen.format import compressors
+from gtgen.format import Runs, compressors
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
 from gtgen.geometry import quat_to_yaw
@@ -84,11 +84,12 @@ def _fuse_part(drive_path: str, out_path: str, rng: str, lo: int, hi: int, cfg_j
     target = {path: out[path.replace("elevation", "elevation_m")] for path in arrays}
     empty = np.zeros(len(samples), bool)
     regions = np.zeros(4, np.int64)
-    for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
-        for path, attr in arrays.items():
-            target[path][lo + k] = getattr(f, attr)
-        empty[k] = not f.count.any()
-        regions += np.bincount(f.region.ravel(), minlength=4)
+    with Runs() as runs:
+        for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
+            for path, attr in arrays.items():
+                runs.put(target[path], lo + k, getattr(f, attr))
+            empty[k] = not f.count.any()
+            regions += np.bincount(f.region.ravel(), minlength=4)
     return rng, lo, empty, regions, maps.loads
 
 
