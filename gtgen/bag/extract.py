@@ -4,11 +4,12 @@ One streaming read, split into record-time slices that run on ``workers`` proces
 Each slice reads the small topics (odometry, TF, GNSS, camera info) whole, notes the
 header stamps of the large ones (maps, voxel map, images) and stages what the plan will
 likely keep (see "staging" below). The merged slices fix the sample times and the maps
-to keep; staged images and maps are linked into the store by chunk, and whatever no
-slice staged is read in a targeted second pass. One chunk per image and per map, so
-slices never write the same chunk. A slice spans at most ``SLICE_S`` of the bag, so
-memory stays flat in drive length; the store does not depend on the split.
+to keep; staged images, maps and voxel maps are moved into the store as chunk files,
+and whatever no slice staged is read in a targeted second pass. One chunk per image, map
+and voxel map, so slices never write the same chunk. A slice spans at most ``SLICE_S``
+of the bag, so memory stays flat in drive length; the store does not depend on the split.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -284,7 +285,7 @@ def msg_quat(q: object) -> NDArray:
 # the kept ones are moved into place by rename; anything the plan wants but no slice
 # staged (stamps far out of record order) is read in a second, targeted pass. The store
 # does not depend on what was staged.
-STAGE = "stage"  # group of the partial store holding staged data; removed before the store completes
+STAGE = "stage"  # folder of the partial store holding staged chunks; removed before the store completes
 
 
 def _period_ns(cfg: GtgenConfig) -> int:
