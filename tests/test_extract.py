@@ -354,3 +354,34 @@ def test_encoded_chunks_are_the_bytes_zarr_writes(tmp_path):
     other = root.create_array("b", shape=v.shape, dtype="float32", chunks=(1, 5, 7))  # zarr's default codecs
     with pytest.raises(ValueError, match="does not store chunks"):
         check_encoded_chunks(other)
+
+
+def test_voxel_maps_in_base_link_are_placed_by_the_pose_track(drive_dir, drive_store, cfg, tmp_path):
+    """Voxel maps published in base_link are staged raw and moved to odom once the pose
+    track is known: the same points as the odom-frame original, staged or read twice."""
+    import dataclasses
+
+    from gtgen.bag.extract import decode_pointcloud
+    from gtgen.bag.poses import PoseTrack
+    from gtgen.bag.reader import stamp_ns
+
+    g = open_drive(drive_store)
+    track = PoseTrack(g["poses/t_ns"][:], g["poses/pos_odom_m"][:], g["poses/quat_odom_xyzw"][:], 10**8)
+
+    def to_base(topic, t, msg):
+        if topic != cfg.topics.voxel_map:
+            return [(t, msg)]
+        T = track.transforms(np.array([stamp_ns(msg.header)]))[0]
+        pts = ((decode_pointcloud(msg).astype(np.float64) - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+        hdr = dataclasses.replace(msg.header, frame_id=cfg.topics.base_frame)
+        return [(t, dataclasses.replace(msg, header=hdr, width=len(pts), height=1, row_step=12 * len(pts),
+                                        data=np.frombuffer(pts.tobytes(), np.uint8)))]
+
+    bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "base.mcap", to_base)
+    staged, ref = tmp_path / "staged.zarr", tmp_path / "ref.zarr"
+    run_extract([bag], staged, cfg, workers=1, slices=3)
+    run_extract([bag], ref, cfg, workers=1, slices=3, staging=False)
+    _assert_same_arrays(ref, staged)
+    a, b = open_drive(staged), g
+    np.testing.assert_array_equal(a["voxel_maps/n_points"][:], b["voxel_maps/n_points"][:])
+    np.testing.assert_allclose(a["voxel_maps/points_odom_m"][:], b["voxel_maps/points_odom_m"][:], atol=2e-3)
