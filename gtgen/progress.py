@@ -62,19 +62,18 @@ class ProcessJobs:
     with one worker, in this process. The pool lives until ``close``, so several rounds
     of jobs pay for worker start-up once."""
 
-    def __init__(self, workers: int, warm: str | None = None) -> None:
-        """``warm`` names a module each worker imports at once, so that start-up overlaps
-        with what the caller does before its first jobs."""
+    def __init__(self, workers: int, warm=None) -> None:
+        """``warm``, a picklable function, runs once per worker at once (to import what
+        the jobs need), so that start-up overlaps with what the caller does before them."""
         self.pool = None
         if workers > 1:
-            import importlib
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-            if warm:
+            if warm is not None:
                 for _ in range(workers):
-                    self.pool.submit(importlib.import_module, warm)
+                    self.pool.submit(warm)
 
     def map(self, fn, jobs: list[tuple], label: str | None = None) -> Iterator:
         """Yield ``fn(*job)`` for each job in order; a progress bar over jobs if ``label``

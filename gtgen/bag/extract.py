@@ -645,6 +645,16 @@ def _slices(bags: BagSet, workers: int, slices: int | None) -> list[tuple[int | 
     return bounds
 
 
+def _import_readers() -> None:
+    """Import what a slice needs (a pool worker's warm-up)."""
+    import mcap.reader  # noqa: F401
+    import numcodecs  # noqa: F401
+    import PIL.Image  # noqa: F401
+    import rosbags.highlevel  # noqa: F401
+    import zarr  # noqa: F401
+    import zstandard  # noqa: F401
+
+
 def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, slices: int | None = None,
                 staging: bool = True, bag_sha256: list[str] | None = None) -> ExtractResult:
     """Read the bags of one drive into the drive store ``out`` (written atomically).
@@ -664,7 +674,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
     jobs: ProcessJobs | None = None
     hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the passes
     try:
-        jobs = ProcessJobs(workers, warm=__name__)  # workers start while the bags open
+        jobs = ProcessJobs(workers, warm=_import_readers)  # workers start while the bags open
         with BagSet(paths) as bags:
             topics = bags.topics()
             roles = _roles(cfg, topics)
