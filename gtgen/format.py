@@ -168,10 +168,11 @@ class Runs:
 
 # -- whole encoded chunks, written and moved as files ---------------------------------
 # A chunk of a (non-sharded) gtgen array is the zstd frame (``compressors()``) of its
-# C-order little-endian bytes, in the file ``<array>/c/<i>/<j>/...`` of a local store.
-# Writing such files directly skips zarr's per-call overhead and the copy that gathers
-# values into one write; a chunk's bytes do not depend on the array's shape, so a chunk
-# written once can be linked into another array of the same dtype and codecs.
+# C-order little-endian bytes, in the file ``<array>/c/<i>/<j>/...`` (or ``c.<i>.<j>``
+# with '.' keys) of a local store. Writing such files directly skips zarr's per-call
+# overhead and the copy that gathers values into one write; a chunk's bytes do not depend
+# on the array's shape, so a file written ahead can be moved into any array of the same
+# dtype and codecs.
 def encode_chunk(value: np.ndarray) -> bytes:
     """Return the encoded bytes of one whole chunk holding ``value``, as zarr writes them
     for an array with ``compressors()``."""

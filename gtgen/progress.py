@@ -63,8 +63,9 @@ class ProcessJobs:
     of jobs pay for worker start-up once."""
 
     def __init__(self, workers: int, warm=None) -> None:
-        """``warm``, a picklable function, runs once per worker at once (to import what
-        the jobs need), so that start-up overlaps with what the caller does before them."""
+        """``warm``, a picklable function, is run ``workers`` times at once (each worker
+        usually takes one; it imports what the jobs need), so that start-up overlaps with
+        what the caller does before the first jobs."""
         self.pool = None
         if workers > 1:
             import multiprocessing as mp

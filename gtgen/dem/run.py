@@ -327,29 +327,30 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
     vox_index, vox_n = drive["samples/voxel_index"][:], drive["voxel_maps/n_points"][:]
     K, T_base_cam = drive["calib/K"][:], drive["calib/T_base_cam"][:]
-    # one read per array for the block's span of samples: zarr's cost per call, not per chunk, dominates
-    k0, k1 = items[0][0], items[-1][0] + 1
-    span = {name: fused[name][k0:k1] for name in _FUSED_READ}
-    span.update({name: drive[name][k0:k1] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")})
-    v0, v1 = int(vox_index[k0]), int(vox_index[k1 - 1]) + 1
-    vox = drive["voxel_maps/points_odom_m"][v0:v1]
+    # one read per array for the block's samples (only theirs: rejected ones between them
+    # are skipped), as zarr's cost per call, not per chunk, dominates
+    ks = np.array([it[0] for it in items])
+    rows = {name: fused[name].oindex[ks] for name in _FUSED_READ}
+    rows.update({name: drive[name].oindex[ks] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")})
+    vs = np.unique(vox_index[ks])
+    vox = drive["voxel_maps/points_odom_m"].oindex[vs]
     samples, points = [], []
-    for k, T_crs_target, fit_k, rmse_k, T_corr in items:
-        pos = span["samples/pos_odom_m"][k - k0]
-        quat = span["samples/quat_odom_xyzw"][k - k0]
+    for j, (k, T_crs_target, fit_k, rmse_k, T_corr) in enumerate(items):
+        pos = rows["samples/pos_odom_m"][j]
+        quat = rows["samples/quat_odom_xyzw"][j]
         yaw = float(quat_to_yaw(quat))
-        sample = _sample_arrays({name: a[k - k0] for name, a in span.items() if name in _FUSED_READ}, index, T_crs_target, grids)
+        sample = _sample_arrays({name: rows[name][j] for name in _FUSED_READ}, index, T_crs_target, grids)
         T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
         v = vox_index[k]
-        pts = vox[v - v0, : vox_n[v]].astype(np.float64)
+        pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
         sample.update({
-            "inputs/images": span["samples/images"][k - k0],
+            "inputs/images": rows["samples/images"][j],
             "inputs/K": K,
             "inputs/T_base_cam": T_base_cam,
             "inputs/T_target_base": T_target_base,
             "inputs/raw_elevation_m": _raw_min_z(pts_t, gs.size, gs.resolution_m),
-            "meta/t_ns": np.int64(span["samples/t_ns"][k - k0]),
+            "meta/t_ns": np.int64(rows["samples/t_ns"][j]),
             "meta/drive": np.uint16(0),
             "meta/pos_odom_m": pos,
             "meta/yaw_odom_rad": np.float64(yaw),
