@@ -196,7 +196,8 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     # end, and the dataset holds them in that same order: each is merged as soon as it and
     # all before it are done, so merging overlaps with the drives still running
     order = sorted(drives, key=lambda n: (-sum(_size(b) for b in drives[n]), n))
-    todo.sort(key=lambda t: order.index(t[0]))
+    rank = {n: i for i, n in enumerate(order)}
+    todo.sort(key=lambda t: rank[t[0]])
     merger = _Merger(out, cfg)
 
     def merge_ready() -> None:

@@ -669,19 +669,19 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
 
     import zarr
 
+    if bag_sha256 is not None and len(bag_sha256) != len(paths):
+        raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
     tmp = st.partial_path(out)
     shutil.rmtree(tmp, ignore_errors=True)
     jobs: ProcessJobs | None = None
-    hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the passes
+    hasher = ThreadPoolExecutor(max_workers=1)  # hashing releases the GIL: overlaps the read
     try:
         jobs = ProcessJobs(workers, warm=_import_readers)  # workers start while the bags open
         with BagSet(paths) as bags:
             topics = bags.topics()
             roles = _roles(cfg, topics)
             bounds = _slices(bags, workers, slices)
-        if bag_sha256 is not None and len(bag_sha256) != len(paths):
-            raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
-        hashes = [hasher.submit(lambda h=h, p=p: h or hash_bag(p)) for p, h in zip(paths, bag_sha256 or [None] * len(paths))]
+        hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []
         root = zarr.open_group(str(tmp), mode="w")
         stage = str(tmp) if staging else None
         parts = list(jobs.map(_scan_slice, [(paths, cfg, roles, a, b, stage, k) for k, (a, b) in enumerate(bounds)],
@@ -713,7 +713,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
             skew_s=_skews(plan),
             warnings=warnings,
             reread=reread,
-            bag_sha256=[h.result() for h in hashes],
+            bag_sha256=bag_sha256 or [h.result() for h in hashes],
         )
         from gtgen.config import save_config
 

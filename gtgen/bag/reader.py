@@ -5,9 +5,10 @@ bare ``.mcap`` (ros2msg or ros1msg) and bare ``.db3``. Messages are decoded from
 definitions stored in the bag; bags without definitions fall back to the standard ROS
 types plus gtgen's grid_map_msgs.
 
-Bare ``.mcap`` files are read with the mcap library's seeking reader (about 1.7x faster
-than iterating them through rosbags, and a time range decompresses only the chunks
-that overlap it); everything else through rosbags' AnyReader.
+Bare ``.mcap`` files are read chunk by chunk from their summary's chunk index (see
+``_chunk_messages``; the mcap library's reader where a file has no index), so a time
+range decompresses only the chunks that overlap it; everything else goes through
+rosbags' AnyReader.
 """
 
 from __future__ import annotations

@@ -310,6 +310,12 @@ class _Blocks:
 _OPEN: dict[tuple[str, str, str], tuple] = {}
 
 
+# the fused arrays a dataset sample is built from
+_FUSED_READ = tuple(f"{g}/{r}/{name}" for r in RANGES for g, names in (
+    ("fused", ("region", "elevation_m", "risk", "confidence", "count", "last_dt_s")), ("xracer", ("elevation_m", "risk", "confidence")))
+    for name in names)
+
+
 def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[np.float32]]:
     """Build the accepted samples ``items`` and write them from dataset index ``start``;
     return their voxel points in the target frame (appended in order by the caller)."""
@@ -365,11 +371,6 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
         points.append(pts_t)
     write_block(Path(ctx.out_path), start, samples)
     return points
-
-
-_FUSED_READ = tuple(f"{g}/{r}/{name}" for r in RANGES for g, names in (
-    ("fused", ("region", "elevation_m", "risk", "confidence", "count", "last_dt_s")), ("xracer", ("elevation_m", "risk", "confidence")))
-    for name in names)
 
 
 def _sample_arrays(fused: dict[str, NDArray], index: TileIndex, T_crs_target: NDArray, grids) -> dict[str, NDArray]:

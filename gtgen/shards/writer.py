@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.format import RowAppender, compressors, dimension_names
+from gtgen.format import RowAppender, chunk_file, compressors, dimension_names
 from gtgen.shards import schema as sc
 
 
@@ -194,10 +194,6 @@ def _copyable_meta(arr) -> dict | None:
             "tail": list(arr.shape[1:])}
 
 
-def _shard_file(root: Path, path: str, k: int, ndim: int) -> Path:
-    return root.joinpath(path, "c", str(k), *(["0"] * (ndim - 1)))
-
-
 def read_shard(file: Path, n: int) -> list[bytes | None]:
     """Return the ``n`` encoded inner chunks of a shard file (None where empty)."""
     if not file.is_file():
@@ -240,12 +236,12 @@ def copy_samples(src, src_root: Path, dst, dst_root: Path, path: str, off: int, 
     K = int(meta["grid"]["configuration"]["chunk_shape"][0])  # samples per shard, the same in both
     cache: tuple[int, list] = (-1, [])
     for k in range(off // K, (off + n - 1) // K + 1):
-        out = _shard_file(dst_root, path, k, a.ndim)
+        out = chunk_file(dst_root, path, (k,) + (0,) * (a.ndim - 1))
         chunks = read_shard(out, K)
         for g in range(max(off, k * K), min(off + n, (k + 1) * K)):
             s = g - off
             if cache[0] != s // K:
-                cache = (s // K, read_shard(_shard_file(src_root, path, s // K, a.ndim), K))
+                cache = (s // K, read_shard(chunk_file(src_root, path, (s // K,) + (0,) * (a.ndim - 1)), K))
             chunks[g - k * K] = cache[1][s % K]
         write_shard(out, chunks)
     return True
