@@ -185,19 +185,26 @@ def encode_chunk(value: np.ndarray) -> bytes:
     return Zstd(level=codec.level, checksum=codec.checksum).encode(v)
 
 
+def encodes_like_gtgen(codecs: list[dict], dtype) -> bool:
+    """Whether a zarr v3 codec list (as in ``metadata.to_dict()``) stores chunks exactly
+    as :func:`encode_chunk` makes them."""
+    (codec,) = compressors()
+    want = [{"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "zstd", "configuration": {"level": codec.level, "checksum": codec.checksum}}]
+    got = [{"name": c.get("name"), "configuration": c.get("configuration", {})} for c in codecs]
+    if np.dtype(dtype).itemsize == 1:  # single bytes have no endianness
+        got = [c if c["name"] != "bytes" else want[0] for c in got]
+    return got == want
+
+
 def check_encoded_chunks(arr) -> str:
     """Return the chunk-key separator of zarr array ``arr``; raise ValueError unless it
     stores chunks as :func:`encode_chunk` makes them, under default chunk keys."""
     md = arr.metadata.to_dict()
-    (codec,) = compressors()
-    want = [{"name": "bytes", "configuration": {"endian": "little"}},
-            {"name": "zstd", "configuration": {"level": codec.level, "checksum": codec.checksum}}]
     enc = md.get("chunk_key_encoding", {})
-    codecs = [{"name": c.get("name"), "configuration": c.get("configuration", {})} for c in md.get("codecs", [])]
-    if np.dtype(arr.dtype).itemsize == 1:  # single bytes have no endianness
-        codecs = [c if c["name"] != "bytes" else want[0] for c in codecs]
     sep = enc.get("configuration", {}).get("separator", "/")
-    if codecs != want or enc.get("name") != "default" or sep not in "/.":
+    codecs = md.get("codecs", [])
+    if not encodes_like_gtgen(codecs, arr.dtype) or enc.get("name") != "default" or sep not in "/.":
         raise ValueError(f"array '{arr.path}' does not store chunks as gtgen encodes them: codecs {codecs}, keys {enc}")
     return sep
 
@@ -224,3 +231,96 @@ def place_chunk(src: Path, dst: Path, move: bool, made: set | None = None) -> No
         os.link(src, dst)
     except OSError:
         shutil.copyfile(src, dst)
+
+
+def is_fill(value: np.ndarray, fill) -> bool:
+    """Return True if every element of ``value`` equals ``fill`` (NaN equals NaN): a chunk
+    zarr does not store (``write_empty_chunks`` off)."""
+    f = np.asarray(fill, value.dtype)
+    if f.dtype.kind == "f" and np.isnan(f):
+        return bool(np.isnan(value).all())
+    return bool((value == f).all())
+
+
+@dataclass(frozen=True)
+class Encoded:
+    """One chunk as stored (``encode_chunk`` bytes, None where the chunk is all fill),
+    with what decoding it needs; moves between stores of the same layout as bytes."""
+
+    data: bytes | None
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    fill: object
+
+    def decode(self) -> np.ndarray:
+        if self.data is None:
+            return np.full(self.shape, self.fill, self.dtype)
+        from numcodecs import Zstd
+
+        return Zstd().decode(self.data, out=np.empty(self.shape, self.dtype.newbyteorder("<"))).astype(self.dtype, copy=False)
+
+    def same_layout(self, dtype, fill) -> bool:
+        """Whether these bytes are a valid chunk of an array of ``dtype`` and ``fill``."""
+        a, b = np.asarray(self.fill, self.dtype), np.asarray(fill, dtype)
+        return np.dtype(dtype) == self.dtype and bool(a == b or (a.dtype.kind == "f" and np.isnan(a) and np.isnan(b)))
+
+
+class ChunkFiles:
+    """The rows (index along axis 0) of a gtgen array whose chunks hold one whole row each,
+    read and written as chunk files of a local store, skipping zarr's per-call cost
+    (per 1 MB float32 grid: read 0.9 vs 1.6 ms, write 1.5 vs 4.0 ms, one thread each).
+
+    Arrays of any other layout or store go through zarr, with the same values.
+    """
+
+    def __init__(self, arr) -> None:
+        self.arr = arr
+        self.row_shape = tuple(int(n) for n in arr.shape[1:])
+        self.dtype = np.dtype(arr.dtype)
+        self.fill = arr.fill_value
+        self.sep: str | None = None
+        root = getattr(arr.store, "root", None)
+        if root is not None and tuple(arr.chunks) == (1, *self.row_shape):
+            try:
+                self.sep = check_encoded_chunks(arr)
+            except ValueError:
+                pass
+        self.root = Path(root) if root is not None else None
+        self._made: set[Path] = set()
+
+    @property
+    def direct(self) -> bool:
+        return self.sep is not None
+
+    def _file(self, k: int) -> Path:
+        return chunk_file(self.root, self.arr.path, (int(k),) + (0,) * len(self.row_shape), self.sep)
+
+    def encoded(self, k: int) -> Encoded | np.ndarray:
+        """Return row ``k`` as stored (Encoded), or its values where the layout is not direct."""
+        if not self.direct:
+            return self.arr[int(k)]
+        try:
+            data = self._file(k).read_bytes()
+        except FileNotFoundError:
+            data = None
+        return Encoded(data, self.dtype, (1, *self.row_shape), self.fill)
+
+    def read(self, k: int) -> np.ndarray:
+        """Return row ``k`` (a new, writable array)."""
+        e = self.encoded(k)
+        return e.decode()[0] if isinstance(e, Encoded) else e
+
+    def write(self, k: int, value: np.ndarray) -> None:
+        """Write row ``k`` (no file where it is all fill, as zarr does)."""
+        if not self.direct:
+            self.arr[int(k)] = value
+            return
+        v = np.asarray(value, self.dtype).reshape(1, *self.row_shape)
+        file = self._file(k)
+        if is_fill(v, self.fill):
+            file.unlink(missing_ok=True)
+            return
+        if file.parent not in self._made:
+            file.parent.mkdir(parents=True, exist_ok=True)
+            self._made.add(file.parent)
+        file.write_bytes(encode_chunk(v))

@@ -24,6 +24,7 @@ from gtgen.dem.fit import PlanarFit, fit_planar
 from gtgen.dem.icp import icp_4dof
 from gtgen.dem.tiles import TileIndex, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
+from gtgen.format import ChunkFiles, Encoded
 from gtgen.fuse.run import open_fused
 from gtgen.geometry import grid_xy, invert, make_transform, quat_to_matrix, quat_to_yaw, yaw_transform
 from gtgen.progress import track
@@ -196,6 +197,7 @@ def _align_all(cfg: GtgenConfig, ctx: _Context, drive, fused, index: TileIndex, 
     fitness: list[float] = []
     dc = cfg.dem
     blocks = _Blocks(ctx, workers, writer)
+    short_region, short_elev = ChunkFiles(fused["fused/short/region"]), ChunkFiles(fused["fused/short/elevation_m"])
     for k in track(range(S), "dem-align: samples"):
         if reason_f[k]:
             writer.reject(int(t_s[k]), 0, int(reason_f[k]))
@@ -203,8 +205,8 @@ def _align_all(cfg: GtgenConfig, ctx: _Context, drive, fused, index: TileIndex, 
         T_odom_target = yaw_transform(*pos[k], yaw[k])
         T_crs_target = T_prior @ T_odom_target
         dem_s = _dem_patch(index, T_crs_target, Xs, Ys)
-        reg_s = fused["fused/short/region"][k]
-        el_s = fused["fused/short/elevation_m"][k]
+        reg_s = short_region.read(k)
+        el_s = short_elev.read(k)
         src_mask = ((reg_s == 1) | (reg_s == 2)) & np.isfinite(el_s)
         tgt_mask = np.isfinite(dem_s)
         if not tgt_mask.any():
@@ -326,18 +328,18 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     key = (ctx.drive_path, ctx.fused_path, ctx.out_path)
     if key not in _OPEN:
         _OPEN.clear()
-        _OPEN[key] = (zarr.open_group(ctx.drive_path, mode="r"), zarr.open_group(ctx.fused_path, mode="r"),
+        fused = zarr.open_group(ctx.fused_path, mode="r")
+        _OPEN[key] = (zarr.open_group(ctx.drive_path, mode="r"), {name: ChunkFiles(fused[name]) for name in _FUSED_READ},
                       TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache)), GtgenConfig.model_validate(ctx.cfg_json))
     drive, fused, index, cfg = _OPEN[key]
     gs = cfg.grids.short
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
     vox_index, vox_n = drive["samples/voxel_index"][:], drive["voxel_maps/n_points"][:]
     K, T_base_cam = drive["calib/K"][:], drive["calib/T_base_cam"][:]
-    # one read per array for the block's samples (only theirs: rejected ones between them
-    # are skipped), as zarr's cost per call, not per chunk, dominates
+    # the small per-sample arrays: one zarr read each for the block's samples (only theirs:
+    # rejected ones between them are skipped), as zarr's cost per call dominates
     ks = np.array([it[0] for it in items])
-    rows = {name: fused[name].oindex[ks] for name in _FUSED_READ}
-    rows.update({name: drive[name].oindex[ks] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")})
+    rows = {name: drive[name].oindex[ks] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")}
     vs = np.unique(vox_index[ks])
     vox = drive["voxel_maps/points_odom_m"].oindex[vs]
     samples, points = [], []
@@ -345,7 +347,7 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
         pos = rows["samples/pos_odom_m"][j]
         quat = rows["samples/quat_odom_xyzw"][j]
         yaw = float(quat_to_yaw(quat))
-        sample = _sample_arrays({name: rows[name][j] for name in _FUSED_READ}, index, T_crs_target, grids)
+        sample = _sample_arrays({name: fused[name].encoded(k) for name in _FUSED_READ}, index, T_crs_target, grids)
         T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
         v = vox_index[k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
@@ -373,14 +375,21 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
     return points
 
 
-def _sample_arrays(fused: dict[str, NDArray], index: TileIndex, T_crs_target: NDArray, grids) -> dict[str, NDArray]:
-    """Return one sample's label, X-Racer and DEM arrays from its fused arrays (by path)."""
-    out: dict[str, NDArray] = {}
+def _sample_arrays(fused: dict[str, NDArray | Encoded], index: TileIndex, T_crs_target: NDArray, grids) -> dict[str, NDArray | Encoded]:
+    """Return one sample's label, X-Racer and DEM arrays from its fused arrays (by path;
+    values or encoded chunks). The arrays the dataset holds unchanged stay as they come,
+    so encoded chunks move into the shards as bytes."""
+    out: dict[str, NDArray | Encoded] = {}
+
+    def value(name: str) -> NDArray:
+        v = fused[name]
+        return v.decode()[0] if isinstance(v, Encoded) else v
+
     for r in RANGES:
         X, Y = grids[r]
         dem = _dem_patch(index, T_crs_target, X, Y)
-        region = fused[f"fused/{r}/region"].copy()
-        elev = fused[f"fused/{r}/elevation_m"]
+        region = value(f"fused/{r}/region").copy()
+        elev = value(f"fused/{r}/elevation_m")
         unobs = region == 3
         elev = np.where(unobs, dem, elev).astype(np.float32)
         region[unobs & ~np.isfinite(dem)] = 0

@@ -14,7 +14,7 @@ from gtgen.bag import store as drive_store
 from gtgen.config import RANGES, GtgenConfig, save_config
 from gtgen.errors import StoreError
 from gtgen.fuse import store as fs
-from gtgen.format import Runs, compressors
+from gtgen.format import ChunkFiles, compressors
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
 from gtgen.geometry import quat_to_yaw
@@ -42,10 +42,10 @@ def zarr_map_source(drive, rng: str, res: float) -> MapSource:
     centers = g["center_odom_m"][:]
     yaws = g["yaw_odom_rad"][:]
     map_res = float(g.attrs["resolution_m"])
-    arrs = (g["elevation_m"], g["risk"], g["confidence"])
+    arrs = tuple(ChunkFiles(g[name]) for name in ("elevation_m", "risk", "confidence"))
 
     def load(i: int):
-        return to_lattice(int(t[i]), tuple(a[i] for a in arrs), centers[i], float(yaws[i]), map_res, res)
+        return to_lattice(int(t[i]), tuple(a.read(i) for a in arrs), centers[i], float(yaws[i]), map_res, res)
 
     return MapSource(t, load)
 
@@ -81,15 +81,14 @@ def _fuse_part(drive_path: str, out_path: str, rng: str, lo: int, hi: int, cfg_j
     samples = sample_grids(drive, rng, grid.size, grid.resolution_m)[lo:hi]
     arrays = {f"fused/{rng}/{n}": n for n in ("elevation", "confidence", "risk", "count", "last_dt_s", "region")}
     arrays.update({f"xracer/{rng}/{n}": f"xr_{n}" for n in ("elevation", "risk", "confidence")})
-    target = {path: out[path.replace("elevation", "elevation_m")] for path in arrays}
+    target = {path: ChunkFiles(out[path.replace("elevation", "elevation_m")]) for path in arrays}
     empty = np.zeros(len(samples), bool)
     regions = np.zeros(4, np.int64)
-    with Runs() as runs:
-        for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
-            for path, attr in arrays.items():
-                runs.put(target[path], lo + k, getattr(f, attr))
-            empty[k] = not f.count.any()
-            regions += np.bincount(f.region.ravel(), minlength=4)
+    for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
+        for path, attr in arrays.items():
+            target[path].write(lo + k, getattr(f, attr))
+        empty[k] = not f.count.any()
+        regions += np.bincount(f.region.ravel(), minlength=4)
     return rng, lo, empty, regions, maps.loads
 
 

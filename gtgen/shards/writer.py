@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.format import RowAppender, chunk_file, compressors, dimension_names
+from gtgen.format import Encoded, RowAppender, chunk_file, compressors, dimension_names, encode_chunk, encodes_like_gtgen, is_fill
 from gtgen.shards import schema as sc
 
 
@@ -24,6 +25,7 @@ class ShardWriter:
 
         self.root = zarr.open_group(str(path), mode="w")
         self.path = path
+        _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
         dims = {"S": max(max_samples, 1), "n_m": micro, "n_s": short, "H": image_hw[0], "W": image_hw[1]}
         self.arrays: dict[str, Any] = {}
         K = sc.SAMPLES_PER_SHARD
@@ -150,20 +152,70 @@ class ShardWriter:
         return self.n
 
 
-def write_block(path: Path, start: int, samples: list[dict[str, NDArray]]) -> None:
+def write_block(path: Path, start: int, samples: list[dict[str, NDArray | Encoded]], direct: bool = True) -> None:
     """Write consecutive samples from index ``start`` (a whole shard) into the store at ``path``.
 
     Workers call this on their own shards, so no shard is written twice or concurrently.
+    A value may be an :class:`~gtgen.format.Encoded` chunk (for example a fused grid
+    passed through unchanged): where the layouts agree its bytes go into the shard as
+    they are. Each shard file is assembled here (``direct``), skipping zarr's per-call
+    cost; ``direct=False`` writes through zarr (the oracle), with the same values.
     """
     import zarr
 
-    if start % sc.SAMPLES_PER_SHARD:
-        raise ValueError(f"block start {start} is not shard-aligned ({sc.SAMPLES_PER_SHARD})")
-    root = zarr.open_group(str(path), mode="r+")
-    for s in sc.DATASET_ARRAYS:
-        if s.path.startswith(("rejected/", "inputs/voxel_")):
+    K = sc.SAMPLES_PER_SHARD
+    if start % K or len(samples) > K:
+        raise ValueError(f"block of {len(samples)} samples at {start} is not one shard ({K} samples, aligned)")
+    root = None
+    for p, (m, ok) in _block_layout(str(path)).items():
+        values = [x[p] for x in samples]
+        if direct and ok:
+            chunks = [_inner_chunk(v, m) for v in values] + [None] * (K - len(values))
+            write_shard(chunk_file(path, p, (start // K,) + (0,) * len(m.row_shape)), chunks)
             continue
-        root[s.path][start : start + len(samples)] = np.stack([x[s.path] for x in samples])
+        root = root or zarr.open_group(str(path), mode="r+")
+        root[p][start : start + len(values)] = np.stack([v.decode()[0] if isinstance(v, Encoded) else v for v in values])
+
+
+@dataclass(frozen=True)
+class _Meta:
+    dtype: np.dtype
+    fill: object
+    row_shape: tuple[int, ...]
+
+
+_LAYOUT: dict[str, dict[str, tuple[_Meta, bool]]] = {}
+
+
+def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
+    """{array: (its dtype, fill and sample shape, whether its shards can be assembled
+    here)} for the per-sample arrays of the dataset at ``path`` (read once per process)."""
+    if path not in _LAYOUT:
+        import zarr
+
+        _LAYOUT.clear()
+        root = zarr.open_group(path, mode="r")
+        layout = {}
+        for s in sc.DATASET_ARRAYS:
+            if s.path.startswith(("rejected/", "inputs/voxel_")):
+                continue
+            arr = root[s.path]
+            meta = _copyable_meta(arr)
+            ok = meta is not None and int(meta["grid"]["configuration"]["chunk_shape"][0]) == sc.SAMPLES_PER_SHARD and \
+                encodes_like_gtgen(meta["codecs"][0]["configuration"]["codecs"], arr.dtype)
+            layout[s.path] = (_Meta(np.dtype(arr.dtype), arr.fill_value, tuple(int(n) for n in arr.shape[1:])), ok)
+        _LAYOUT[path] = layout
+    return _LAYOUT[path]
+
+
+def _inner_chunk(value: NDArray | Encoded, m: _Meta) -> bytes | None:
+    """Return the encoded inner chunk of one sample (None where it is all fill)."""
+    if isinstance(value, Encoded):
+        if value.shape == (1, *m.row_shape) and value.same_layout(m.dtype, m.fill):
+            return value.data
+        value = value.decode()[0]
+    v = np.asarray(value, m.dtype).reshape(1, *m.row_shape)
+    return None if is_fill(v, m.fill) else encode_chunk(v)
 
 
 # -- byte-wise shard copies --------------------------------------------------------------

@@ -1,0 +1,109 @@
+"""Chunks and shards written and read as files equal what zarr writes and reads (the oracle)."""
+
+import numpy as np
+import pytest
+import zarr
+
+from gtgen.format import ChunkFiles, Encoded, compressors, encode_chunk
+from gtgen.shards import schema as sc
+from gtgen.shards.writer import ShardWriter, write_block
+
+
+def _rows(rng, n=5):
+    v = rng.normal(size=(n, 6, 7)).astype(np.float32)
+    v[1] = np.nan  # a row zarr does not store
+    v[2, :3] = np.nan
+    return v
+
+
+def _chunk_files(array_dir):
+    return sorted(p.relative_to(array_dir) for p in array_dir.rglob("*") if p.is_file() and p.name != "zarr.json")
+
+
+@pytest.mark.parametrize("sep", "/.")
+def test_chunk_files_equal_zarr(tmp_path, sep):
+    rng = np.random.default_rng(0)
+    v = _rows(rng)
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    kw = {"shape": v.shape, "dtype": "float32", "chunks": (1, 6, 7), "fill_value": np.nan, "compressors": compressors(),
+          "chunk_key_encoding": {"name": "default", "separator": sep}}
+    ours, theirs = ChunkFiles(root.create_array("ours", **kw)), root.create_array("theirs", **kw)
+    assert ours.direct
+    for k in range(len(v)):
+        ours.write(k, v[k])
+    theirs[:] = v
+    a = zarr.open_group(str(tmp_path / "s.zarr"), mode="r")
+    np.testing.assert_array_equal(a["ours"][:], v)
+    files = _chunk_files(tmp_path / "s.zarr" / "ours")
+    assert files == _chunk_files(tmp_path / "s.zarr" / "theirs")
+    for f in files:  # byte for byte, and no file for the all-NaN row
+        assert (tmp_path / "s.zarr" / "ours" / f).read_bytes() == (tmp_path / "s.zarr" / "theirs" / f).read_bytes()
+    assert len(files) == len(v) - 1
+    back = ChunkFiles(a["theirs"])
+    for k in range(len(v)):
+        r = back.read(k)
+        np.testing.assert_array_equal(r, v[k])
+        r += 1  # a new, writable array
+    ours.write(0, np.full((6, 7), np.nan, np.float32))  # a row overwritten with fill loses its file
+    np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "s.zarr"), mode="r")["ours"][0], np.full((6, 7), np.nan))
+
+
+def test_chunk_files_fall_back_to_zarr_for_other_layouts(tmp_path):
+    v = _rows(np.random.default_rng(1))
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    for name, kw in {"default_codecs": {"chunks": (1, 6, 7)}, "two_rows": {"chunks": (2, 6, 7), "compressors": compressors()},
+                     "part_rows": {"chunks": (1, 3, 7), "compressors": compressors()}}.items():
+        f = ChunkFiles(root.create_array(name, shape=v.shape, dtype="float32", fill_value=np.nan, **kw))
+        assert not f.direct
+        for k in range(len(v)):
+            f.write(k, v[k])
+        np.testing.assert_array_equal(np.stack([f.read(k) for k in range(len(v))]), v)
+        assert not isinstance(f.encoded(0), Encoded)
+
+
+def _block(rng, S, micro, short, hw, src):
+    """Samples of random values; the fused-like arrays as Encoded chunks of ``src``."""
+    out = []
+    for k in range(S):
+        s = {}
+        for spec in sc.DATASET_ARRAYS:
+            if spec.path.startswith(("rejected/", "inputs/voxel_")):
+                continue
+            shape = [int({"S": 1, "n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]}.get(d.strip(), d))
+                     for d in spec.shape.strip("()").split(",") if d.strip()][1:]
+            dt = np.dtype(spec.dtype)
+            v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
+            if spec.path == "labels/micro/risk" and k == 2:
+                v[:] = np.nan  # all fill: no inner chunk
+            s[spec.path] = v
+        for path in ("labels/micro/risk", "xracer/short/confidence"):
+            src[path][k] = s[path]
+            s[path] = ChunkFiles(src[path]).encoded(k)
+        count = rng.integers(1, 9, (1, micro, micro)).astype(np.uint8)  # another dtype: decoded and encoded anew
+        s["labels/micro/count"] = Encoded(encode_chunk(count), np.dtype("uint8"), count.shape, 0)
+        out.append(s)
+    return out
+
+
+def test_write_block_equals_zarr_writes(tmp_path):
+    """Shards assembled from values and encoded chunks hold what zarr writes, byte for byte."""
+    micro, short, hw, S = 12, 8, (4, 6), 5  # a partial shard
+    rng = np.random.default_rng(2)
+    src = zarr.open_group(str(tmp_path / "src.zarr"), mode="w")
+    for path, n in (("labels/micro/risk", micro), ("xracer/short/confidence", short)):
+        src.create_array(path, shape=(S, n, n), dtype="float32", chunks=(1, n, n), fill_value=np.nan, compressors=compressors())
+    samples = _block(rng, S, micro, short, hw, src)
+    for name, direct in (("ours", True), ("zarr", False)):
+        ShardWriter(tmp_path / f"{name}.zarr", 2 * sc.SAMPLES_PER_SHARD, micro, short, hw)
+        write_block(tmp_path / f"{name}.zarr", sc.SAMPLES_PER_SHARD, samples, direct=direct)
+    a, b = (zarr.open_group(str(tmp_path / f"{n}.zarr"), mode="r") for n in ("ours", "zarr"))
+    for path in samples[0]:
+        want = np.stack([v.decode()[0] if isinstance(v, Encoded) else v for v in (s[path] for s in samples)])
+        got = a[path][sc.SAMPLES_PER_SHARD : sc.SAMPLES_PER_SHARD + S]
+        np.testing.assert_array_equal(got, want.astype(got.dtype))
+        np.testing.assert_array_equal(got, b[path][sc.SAMPLES_PER_SHARD : sc.SAMPLES_PER_SHARD + S])
+        shard = f"c/1{'/0' * (want.ndim - 1)}"
+        assert (tmp_path / "ours.zarr" / path / shard).read_bytes() == (tmp_path / "zarr.zarr" / path / shard).read_bytes(), path
+    assert np.isnan(a["labels/micro/risk"][sc.SAMPLES_PER_SHARD + 2]).all()
+    with pytest.raises(ValueError, match="not one shard"):
+        write_block(tmp_path / "ours.zarr", 3, samples)
