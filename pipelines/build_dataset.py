@@ -51,6 +51,7 @@ class DriveResult:
     rejected: dict[str, int] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
     bag_sha256: list[str] = field(default_factory=list)
+    workers: int = 1  # processes its stages ran on
 
 
 @dataclass
@@ -123,9 +124,10 @@ def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path, bag_sha256: list[
 
 
 def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json: dict,
-                  bag_sha256: list[str] | None = None) -> DriveResult:
-    """Run extract, fuse and dem-align for one drive (a picklable task for any executor);
-    the bags are hashed while extract reads them unless ``bag_sha256`` gives the hashes."""
+                  bag_sha256: list[str] | None = None, workers: int = 1) -> DriveResult:
+    """Run extract, fuse and dem-align for one drive (a picklable task for any executor),
+    each stage on ``workers`` processes; the bags are hashed while extract reads them
+    unless ``bag_sha256`` gives the hashes."""
     from gtgen.bag.extract import run_extract
     from gtgen.dem.run import run_dem_align
     from gtgen.fuse.run import run_fuse
@@ -134,16 +136,16 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
     folder = Path(work) / name
     folder.mkdir(parents=True, exist_ok=True)
     (folder / DONE).unlink(missing_ok=True)
-    res = DriveResult(name, ok=False)
+    res = DriveResult(name, ok=False, workers=workers)
     try:
         t = time.perf_counter()
-        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=1, bag_sha256=bag_sha256)
+        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=workers, bag_sha256=bag_sha256)
         res.seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
-        run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=1)
+        run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=workers)
         res.seconds["fuse"] = time.perf_counter() - t
         t = time.perf_counter()
-        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=1)
+        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=workers)
         res.seconds["dem-align"] = time.perf_counter() - t
     except GtgenError as err:
         res.error = f"{type(err).__name__}: {err}"
@@ -192,6 +194,10 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
                 results[name] = done
                 continue
         todo.append((name, [str(b) for b in bags], str(dems[name]), str(work), cfg_json, hashes))
+    # with fewer drives than workers (one long drive, say) each drive's stages run on the
+    # spare workers themselves, so no core idles; a Dask task stays one process
+    inner = 1 if scheduler else max(1, workers // max(len(todo), 1))
+    todo = [(*t, inner) for t in todo]
     # drives run largest bags first, so that no worker is left with a long drive at the
     # end, and the dataset holds them in that same order: each is merged as soon as it and
     # all before it are done, so merging overlaps with the drives still running
@@ -227,6 +233,7 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
             for fut in track(as_completed(futs), "build: drives", total=len(futs)):
                 yield fut.result()
         return
+    workers = min(workers, len(todo))
     if workers <= 1:
         for t in track(todo, "build: drives"):
             yield process_drive(*t)

@@ -70,6 +70,14 @@ def test_pool_and_dask_give_identical_arrays(drives, pool_build, tmp_path):
     _same(_arrays(pool_build), _arrays(tmp_path))
 
 
+def test_one_drive_runs_its_stages_on_every_worker(drives, pool_build, tmp_path):
+    """A build of fewer drives than workers gives the spare workers to each drive's stages."""
+    res = build_dataset([drives / "c"], None, tmp_path, small_config(), workers=2)
+    assert [(r.name, r.ok, r.workers) for r in res.drives] == [("c", True, 2)]
+    _same(_arrays(pool_build / "drives" / "c"), _arrays(tmp_path))
+    assert {r.workers for r in build_dataset([drives], None, pool_build, small_config(), workers=2).drives} == {1}
+
+
 def test_rerun_skips_done_drives(drives, pool_build):
     res = build_dataset([drives], None, pool_build, small_config(), workers=2)
     assert all(r.skipped for r in res.drives)
