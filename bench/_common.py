@@ -45,12 +45,16 @@ def drive(duration_s: float, seed: int = 0, fmt: str = "mcap") -> Path:
 
 
 def fresh_workspace(name: str) -> Path:
-    """Return an empty folder ``bench/out/<name>`` (removed and made anew)."""
+    """Return an empty folder ``bench/out/<name>`` (removed and made anew), removed again
+    when the bench exits (stores of a long drive take GBs), unless GTGEN_BENCH_KEEP=1."""
+    import atexit
     import shutil
 
     ws = OUT / name
     shutil.rmtree(ws, ignore_errors=True)
     ws.mkdir(parents=True)
+    if os.environ.get("GTGEN_BENCH_KEEP") != "1":
+        atexit.register(shutil.rmtree, ws, True)
     return ws
 
 
