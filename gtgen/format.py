@@ -306,9 +306,17 @@ class ChunkFiles:
         return Encoded(data, self.dtype, (1, *self.row_shape), self.fill)
 
     def read(self, k: int) -> np.ndarray:
-        """Return row ``k`` (a new, writable array)."""
+        """Return row ``k`` (a new, writable array); StoreError if its file is damaged."""
         e = self.encoded(k)
-        return e.decode()[0] if isinstance(e, Encoded) else e
+        if not isinstance(e, Encoded):
+            return e
+        try:
+            return e.decode()[0]
+        except Exception as err:  # noqa: BLE001 - zstd and numpy raise several kinds
+            from gtgen.errors import StoreError
+
+            raise StoreError(f"chunk file '{self._file(k)}' of array '{self.arr.path}' cannot be decoded ({err}); "
+                             "the store is damaged: re-run the stage that wrote it") from err
 
     def write(self, k: int, value: np.ndarray) -> None:
         """Write row ``k`` (no file where it is all fill, as zarr does)."""

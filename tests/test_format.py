@@ -48,6 +48,17 @@ def test_chunk_files_equal_zarr(tmp_path, sep):
     np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "s.zarr"), mode="r")["ours"][0], np.full((6, 7), np.nan))
 
 
+def test_damaged_chunk_file_is_a_store_error(tmp_path):
+    from gtgen.errors import StoreError
+
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    f = ChunkFiles(root.create_array("a", shape=(2, 6, 7), dtype="float32", chunks=(1, 6, 7), fill_value=np.nan, compressors=compressors()))
+    f.write(1, np.ones((6, 7), np.float32))
+    f._file(1).write_bytes(f._file(1).read_bytes()[:-5])
+    with pytest.raises(StoreError, match="cannot be decoded.*re-run"):
+        f.read(1)
+
+
 def test_chunk_files_fall_back_to_zarr_for_other_layouts(tmp_path):
     v = _rows(np.random.default_rng(1))
     root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
