@@ -80,16 +80,12 @@ class RowAppender:
 
     ``zarr.Array.append`` per small batch resizes the array and rewrites a partly filled
     chunk every time; this buffers rows and writes only whole chunks, doubling the
-    capacity when needed, and ``close`` writes the rest and trims the array. ``write``
-    replaces ``arr[index] = value`` (for example to write on a thread pool); ``before_resize``
-    runs before each resize (to finish writes in flight).
+    capacity when needed, and ``close`` writes the rest and trims the array.
     """
 
-    def __init__(self, arr, write=None, before_resize=None) -> None:
+    def __init__(self, arr) -> None:
         self.arr = arr
         self.chunk = int(arr.chunks[0])
-        self.write = write or (lambda a, index, value: a.__setitem__(index, value))
-        self.before_resize = before_resize
         self.buf: list = []
         self.buffered = 0
         self.written = 0
@@ -109,10 +105,8 @@ class RowAppender:
         if n == 0:
             return
         if self.written + n > self.arr.shape[0]:
-            if self.before_resize is not None:
-                self.before_resize()
             self.arr.resize((max(2 * self.arr.shape[0], self.written + n), *self.arr.shape[1:]))
-        self.write(self.arr, slice(self.written, self.written + n), allr[:n])
+        self.arr[self.written : self.written + n] = allr[:n]
         self.written += n
         self.buf = [allr[n:]] if n < len(allr) else []
         self.buffered = len(allr) - n
@@ -120,8 +114,6 @@ class RowAppender:
     def close(self) -> int:
         """Write the buffered rows, trim the array to the rows appended; return their count."""
         self._flush(whole=False)
-        if self.before_resize is not None:
-            self.before_resize()
         if self.arr.shape[0] != self.written:
             self.arr.resize((self.written, *self.arr.shape[1:]))
         return self.written
@@ -215,14 +207,19 @@ def chunk_file(store: Path, path: str, coords: tuple[int, ...], sep: str = "/") 
     return store.joinpath(path, *sep.join(["c", *map(str, coords)]).split("/"))
 
 
-def place_chunk(src: Path, dst: Path, move: bool, made: set | None = None) -> None:
-    """Make chunk file ``dst`` hold the bytes of ``src``: renamed if ``move``, else a hard
-    link (a copy where links fail). ``made`` caches the folders already created."""
-    parent = dst.parent
+def make_parent(file: Path, made: set[Path] | None = None) -> None:
+    """Create the folder of ``file`` unless ``made`` (the folders created so far) has it."""
+    parent = file.parent
     if made is None or parent not in made:
         parent.mkdir(parents=True, exist_ok=True)
         if made is not None:
             made.add(parent)
+
+
+def place_chunk(src: Path, dst: Path, move: bool, made: set | None = None) -> None:
+    """Make chunk file ``dst`` hold the bytes of ``src``: renamed if ``move``, else a hard
+    link (a copy where links fail). ``made`` caches the folders already created."""
+    make_parent(dst, made)
     if move:
         os.replace(src, dst)
         return
@@ -328,7 +325,5 @@ class ChunkFiles:
         if is_fill(v, self.fill):
             file.unlink(missing_ok=True)
             return
-        if file.parent not in self._made:
-            file.parent.mkdir(parents=True, exist_ok=True)
-            self._made.add(file.parent)
+        make_parent(file, self._made)
         file.write_bytes(encode_chunk(v))

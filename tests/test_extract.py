@@ -340,22 +340,6 @@ def test_direct_mcap_reader_on_a_synth_bag(drive_dir):
     assert _direct_messages(drive_dir / "drive.mcap", topics, None, None) == _lib_messages(drive_dir / "drive.mcap", topics, None, None)
 
 
-def test_encoded_chunks_are_the_bytes_zarr_writes(tmp_path):
-    from gtgen.format import check_encoded_chunks, chunk_file, compressors, encode_chunk
-
-    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
-    v = np.random.default_rng(0).normal(size=(2, 5, 7)).astype(np.float32)
-    for sep in "/.":
-        a = root.create_array(f"a{sep == '.'}", shape=v.shape, dtype="float32", chunks=(1, 5, 7), compressors=compressors(),
-                              chunk_key_encoding={"name": "default", "separator": sep})
-        a[:] = v
-        assert check_encoded_chunks(a) == sep
-        assert chunk_file(tmp_path / "s.zarr", a.path, (1, 0, 0), sep).read_bytes() == encode_chunk(v[1])
-    other = root.create_array("b", shape=v.shape, dtype="float32", chunks=(1, 5, 7))  # zarr's default codecs
-    with pytest.raises(ValueError, match="does not store chunks"):
-        check_encoded_chunks(other)
-
-
 def test_voxel_maps_in_base_link_are_placed_by_the_pose_track(drive_dir, drive_store, cfg, tmp_path):
     """Voxel maps published in base_link are staged raw and moved to odom once the pose
     track is known: the same points as the odom-frame original, staged or read twice."""

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import zarr
 
-from gtgen.format import ChunkFiles, Encoded, compressors, encode_chunk
+from gtgen.format import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
 from gtgen.shards import schema as sc
 from gtgen.shards.writer import ShardWriter, write_block
 
@@ -14,6 +14,20 @@ def _rows(rng, n=5):
     v[1] = np.nan  # a row zarr does not store
     v[2, :3] = np.nan
     return v
+
+
+def test_encoded_chunks_are_the_bytes_zarr_writes(tmp_path):
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    v = np.random.default_rng(0).normal(size=(2, 5, 7)).astype(np.float32)
+    for sep in "/.":
+        a = root.create_array(f"a{sep == '.'}", shape=v.shape, dtype="float32", chunks=(1, 5, 7), compressors=compressors(),
+                              chunk_key_encoding={"name": "default", "separator": sep})
+        a[:] = v
+        assert check_encoded_chunks(a) == sep
+        assert chunk_file(tmp_path / "s.zarr", a.path, (1, 0, 0), sep).read_bytes() == encode_chunk(v[1])
+    other = root.create_array("b", shape=v.shape, dtype="float32", chunks=(1, 5, 7))  # zarr's default codecs
+    with pytest.raises(ValueError, match="does not store chunks"):
+        check_encoded_chunks(other)
 
 
 def _chunk_files(array_dir):
@@ -77,11 +91,8 @@ def _block(rng, S, micro, short, hw, src):
     out = []
     for k in range(S):
         s = {}
-        for spec in sc.DATASET_ARRAYS:
-            if spec.path.startswith(("rejected/", "inputs/voxel_")):
-                continue
-            shape = [int({"S": 1, "n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]}.get(d.strip(), d))
-                     for d in spec.shape.strip("()").split(",") if d.strip()][1:]
+        for spec in sc.SAMPLE_ARRAYS:
+            shape = sc.row_shape(spec, {"n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]})
             dt = np.dtype(spec.dtype)
             v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
             if spec.path == "labels/micro/risk" and k == 2:

@@ -28,9 +28,10 @@ from gtgen.bag import store as st
 from gtgen.bag.gridmap import decode_gridmap
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, TopicInfo, stamp_ns
+from gtgen.bag.store import MAP_LAYERS
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError, PoseError, TopicError
-from gtgen.format import Runs, check_encoded_chunks, chunk_file, compressors, encode_chunk, place_chunk
+from gtgen.format import Runs, check_encoded_chunks, chunk_file, compressors, encode_chunk, make_parent, place_chunk
 from gtgen.geometry import invert, make_transform, quat_to_matrix, yaw_transform
 from gtgen.progress import ProcessJobs
 
@@ -343,9 +344,7 @@ class _Stager:
             self.writes.__exit__(*exc)
 
     def _write(self, file: Path, value: NDArray) -> None:
-        if file.parent not in self.made:
-            file.parent.mkdir(parents=True, exist_ok=True)
-            self.made.add(file.parent)
+        make_parent(file, self.made)
         self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
 
     def add(self, role: str, i: int, t: int, msg: object, msgtype: str, ok: bool) -> None:
@@ -387,7 +386,7 @@ class _Stager:
             return
         if frame == tp.base_frame:  # to odom once the whole pose track is known
             f = self.result.raw_voxels(i)
-            f.parent.mkdir(parents=True, exist_ok=True)
+            make_parent(f, self.made)
             np.save(f, pts)
             self.result.voxels[i] = (-1, t)
             return
@@ -971,7 +970,6 @@ def _write_large(root, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: di
     return n_missing
 
 
-MAP_LAYERS = ("elevation_m", "risk", "confidence")
 @dataclass
 class _SliceOut:
     selected: int

@@ -19,6 +19,8 @@ from gtgen.format import ArraySpec, find
 DRIVE_STORE = "gtgen-drive"
 DRIVE_VERSION = 2
 
+MAP_LAYERS = ("elevation_m", "risk", "confidence")  # the grids of each kept map, in GridMap layer order (topics.layers)
+
 _MAPS: list[ArraySpec] = []
 for _r in RANGES:
     _MAPS += [

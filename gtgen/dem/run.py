@@ -312,10 +312,12 @@ class _Blocks:
 _OPEN: dict[tuple[str, str, str], tuple] = {}
 
 
-# the fused arrays a dataset sample is built from
+# the fused arrays a dataset sample is built from; those not decoded here go into the
+# dataset unchanged, as encoded bytes
 _FUSED_READ = tuple(f"{g}/{r}/{name}" for r in RANGES for g, names in (
     ("fused", ("region", "elevation_m", "risk", "confidence", "count", "last_dt_s")), ("xracer", ("elevation_m", "risk", "confidence")))
     for name in names)
+_FUSED_DECODED = {f"fused/{r}/{name}" for r in RANGES for name in ("region", "elevation_m")}
 
 
 def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[np.float32]]:
@@ -347,7 +349,8 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
         pos = rows["samples/pos_odom_m"][j]
         quat = rows["samples/quat_odom_xyzw"][j]
         yaw = float(quat_to_yaw(quat))
-        sample = _sample_arrays({name: fused[name].encoded(k) for name in _FUSED_READ}, index, T_crs_target, grids)
+        rows_k = {name: fused[name].read(k) if name in _FUSED_DECODED else fused[name].encoded(k) for name in _FUSED_READ}
+        sample = _sample_arrays(rows_k, index, T_crs_target, grids)
         T_target_base = make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3))
         v = vox_index[k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
@@ -377,19 +380,14 @@ def _build_block(ctx: _Context, start: int, items: list[tuple]) -> list[NDArray[
 
 def _sample_arrays(fused: dict[str, NDArray | Encoded], index: TileIndex, T_crs_target: NDArray, grids) -> dict[str, NDArray | Encoded]:
     """Return one sample's label, X-Racer and DEM arrays from its fused arrays (by path;
-    values or encoded chunks). The arrays the dataset holds unchanged stay as they come,
-    so encoded chunks move into the shards as bytes."""
+    region and elevation as values, the rest as values or encoded chunks, which stay as
+    they come: the dataset holds them unchanged)."""
     out: dict[str, NDArray | Encoded] = {}
-
-    def value(name: str) -> NDArray:
-        v = fused[name]
-        return v.decode()[0] if isinstance(v, Encoded) else v
-
     for r in RANGES:
         X, Y = grids[r]
         dem = _dem_patch(index, T_crs_target, X, Y)
-        region = value(f"fused/{r}/region").copy()
-        elev = value(f"fused/{r}/elevation_m")
+        region = fused[f"fused/{r}/region"]
+        elev = fused[f"fused/{r}/elevation_m"]
         unobs = region == 3
         elev = np.where(unobs, dem, elev).astype(np.float32)
         region[unobs & ~np.isfinite(dem)] = 0

@@ -42,7 +42,7 @@ def zarr_map_source(drive, rng: str, res: float) -> MapSource:
     centers = g["center_odom_m"][:]
     yaws = g["yaw_odom_rad"][:]
     map_res = float(g.attrs["resolution_m"])
-    arrs = tuple(ChunkFiles(g[name]) for name in ("elevation_m", "risk", "confidence"))
+    arrs = tuple(ChunkFiles(g[name]) for name in drive_store.MAP_LAYERS)
 
     def load(i: int):
         return to_lattice(int(t[i]), tuple(a.read(i) for a in arrs), centers[i], float(yaws[i]), map_res, res)

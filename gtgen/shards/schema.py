@@ -66,9 +66,20 @@ DATASET_ARRAYS += [
 ]
 
 
+# the arrays with one row per sample (sharded along the sample axis)
+SAMPLE_ARRAYS: list[ArraySpec] = [s for s in DATASET_ARRAYS if not s.path.startswith(("rejected/", "inputs/voxel_"))]
+
+
 def spec(path: str) -> ArraySpec:
     """Return the spec of dataset array ``path``."""
     return find(DATASET_ARRAYS, path)
+
+
+def row_shape(s: ArraySpec, dims: dict[str, int]) -> tuple[int, ...]:
+    """Return one sample's shape of per-sample array ``s``; ``dims`` gives the symbols
+    (n_m, n_s, H, W)."""
+    axes = [d.strip() for d in s.shape.strip("()").split(",") if d.strip()][1:]
+    return tuple(int(dims[d]) if d in dims else int(d) for d in axes)
 
 
 @dataclass(frozen=True)

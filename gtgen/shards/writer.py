@@ -14,7 +14,9 @@ from gtgen.shards import schema as sc
 
 
 class ShardWriter:
-    """Buffers samples and writes each shard of ``SAMPLES_PER_SHARD`` samples once.
+    """Creates a dataset's arrays and keeps its flat voxel points and rejection list;
+    per-sample arrays arrive as whole shards, from ``write_block`` (then ``add_block``)
+    or from another dataset (``append_dataset``), so no shard is written twice.
 
     Arrays are created at ``max_samples``, grown if more come, and shrunk to the samples
     written on close.
@@ -26,42 +28,25 @@ class ShardWriter:
         self.root = zarr.open_group(str(path), mode="w")
         self.path = path
         _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
-        dims = {"S": max(max_samples, 1), "n_m": micro, "n_s": short, "H": image_hw[0], "W": image_hw[1]}
+        dims = {"n_m": micro, "n_s": short, "H": image_hw[0], "W": image_hw[1]}
         self.arrays: dict[str, Any] = {}
         K = sc.SAMPLES_PER_SHARD
-        for s in sc.DATASET_ARRAYS:
-            if s.path.startswith(("rejected/", "inputs/voxel_")):
-                continue
-            inner = [int(dims[d.strip()]) if d.strip() in dims else int(d) for d in s.shape.strip("()").split(",") if d.strip()][1:]
-            shape = (dims["S"], *inner)
+        for s in sc.SAMPLE_ARRAYS:
+            inner = sc.row_shape(s, dims)
             self.arrays[s.path] = self.root.create_array(
-                s.path, shape=shape, dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner), fill_value=s.fill_value(), compressors=compressors(),
-                dimension_names=dimension_names(s),
+                s.path, shape=(max(max_samples, 1), *inner), dtype=s.dtype, chunks=(1, *inner), shards=(K, *inner),
+                fill_value=s.fill_value(), compressors=compressors(), dimension_names=dimension_names(s),
             )
         self.points = self.root.create_array("inputs/voxel_points_m", shape=(sc.POINTS_PER_CHUNK, 3), dtype="float32",
                                              chunks=(sc.POINTS_PER_CHUNK, 3), fill_value=0.0, compressors=compressors(),
                                              dimension_names=dimension_names(sc.spec("inputs/voxel_points_m")))
         self.rows = RowAppender(self.points)
         self.offsets = [0]
-        self.buffer: list[dict[str, NDArray]] = []
         self.n = 0
         self.rejected: list[tuple[int, int, int, float, float]] = []
 
-    def add(self, sample: dict[str, NDArray], points: NDArray[np.float32]) -> None:
-        """Queue one sample (every non-voxel per-sample array) and its voxel points."""
-        missing = set(self.arrays) - set(sample)
-        if missing:
-            raise KeyError(f"sample lacks arrays {sorted(missing)}")
-        self.buffer.append(sample)
-        self.rows.append(np.asarray(points, np.float32).reshape(-1, 3))
-        self.offsets.append(self.offsets[-1] + len(points))
-        if len(self.buffer) == sc.SAMPLES_PER_SHARD:
-            self._flush()
-
     def add_block(self, points: list[NDArray[np.float32]]) -> None:
         """Account for a whole shard of samples already written by ``write_block`` (in order)."""
-        if self.buffer:
-            raise RuntimeError("add_block after add: blocks must stay shard-aligned")
         self._ensure(self.n + len(points))
         for p in points:
             self.rows.append(np.asarray(p, np.float32).reshape(-1, 3))
@@ -81,8 +66,6 @@ class ShardWriter:
 
         from gtgen.progress import track
 
-        if self.buffer:
-            raise RuntimeError("append_dataset after add: drives must stay shard-aligned")
         S = int(src["meta/t_ns"].shape[0])
         off = self.n
         self._ensure(off + S)
@@ -120,19 +103,8 @@ class ShardWriter:
             for arr in self.arrays.values():
                 arr.resize((new, *arr.shape[1:]))
 
-    def _flush(self) -> None:
-        if not self.buffer:
-            return
-        a, b = self.n, self.n + len(self.buffer)
-        self._ensure(b)
-        for name, arr in self.arrays.items():
-            arr[a:b] = np.stack([s[name] for s in self.buffer])
-        self.n = b
-        self.buffer = []
-
     def close(self, attrs: dict[str, Any]) -> int:
-        """Write what is buffered, shrink to the samples written, store attributes; return S."""
-        self._flush()
+        """Write the last voxel points, shrink to the samples written, store attributes; return S."""
         self.rows.close()
         for arr in self.arrays.values():
             arr.resize((self.n, *arr.shape[1:]))
@@ -196,9 +168,7 @@ def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
         _LAYOUT.clear()
         root = zarr.open_group(path, mode="r")
         layout = {}
-        for s in sc.DATASET_ARRAYS:
-            if s.path.startswith(("rejected/", "inputs/voxel_")):
-                continue
+        for s in sc.SAMPLE_ARRAYS:
             arr = root[s.path]
             meta = _copyable_meta(arr)
             ok = meta is not None and int(meta["grid"]["configuration"]["chunk_shape"][0]) == sc.SAMPLES_PER_SHARD and \
