@@ -216,22 +216,24 @@ def _copyable_meta(arr) -> dict | None:
             "tail": list(arr.shape[1:])}
 
 
-def read_shard(file: Path, n: int) -> list[bytes | None]:
-    """Return the ``n`` encoded inner chunks of a shard file (None where empty)."""
+def read_shard(file: Path, n: int) -> list[memoryview | None]:
+    """Return the ``n`` encoded inner chunks of a shard file (None where empty), as views
+    of the file's bytes (no copy)."""
     if not file.is_file():
         return [None] * n
     import google_crc32c
 
-    data = file.read_bytes()
-    index = data[-(16 * n + 4):]
+    data = memoryview(file.read_bytes())
+    index = bytes(data[-(16 * n + 4):])
     if len(index) != 16 * n + 4 or google_crc32c.value(index[:-4]) != int.from_bytes(index[-4:], "little"):
         raise ValueError(f"shard '{file}' has a bad index (expected {n} inner chunks)")
     entries = np.frombuffer(index[:-4], "<u8").reshape(n, 2)
     return [None if o == _EMPTY else data[int(o) : int(o) + int(m)] for o, m in entries]
 
 
-def write_shard(file: Path, chunks: list[bytes | None]) -> None:
-    """Write a shard file of encoded inner chunks (None = empty)."""
+def write_shard(file: Path, chunks: list[bytes | memoryview | None]) -> None:
+    """Write a shard file of encoded inner chunks (None = empty), straight from the chunks'
+    buffers (no joined copy)."""
     import google_crc32c
 
     index = np.full((len(chunks), 2), _EMPTY, "<u8")
@@ -242,9 +244,11 @@ def write_shard(file: Path, chunks: list[bytes | None]) -> None:
             parts.append(c)
             pos += len(c)
     ib = index.tobytes()
+    parts += [ib, int(google_crc32c.value(ib)).to_bytes(4, "little")]
     file.parent.mkdir(parents=True, exist_ok=True)
     tmp = file.with_name(file.name + ".tmp")
-    tmp.write_bytes(b"".join(parts) + ib + int(google_crc32c.value(ib)).to_bytes(4, "little"))
+    with open(tmp, "wb") as f:  # a buffer larger than the file's own goes straight to the file
+        f.writelines(parts)
     tmp.replace(file)
 
 
