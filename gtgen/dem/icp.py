@@ -2,8 +2,8 @@
 
 Correspondences come from open3d's nearest-neighbour search (built once per target,
 queried in Z-order of the source so that neighbouring queries walk the same tree
-branches: 35 % less search time than a shuffled source); each iteration solves the linearised 4-DoF point-to-plane least squares in closed
-form. Fitness is the share of source points with a target point within
+branches: 35 % less search time than a shuffled source); each iteration solves the
+linearised 4-DoF point-to-plane least squares in closed form. Fitness is the share of source points with a target point within
 ``max_distance``; the inlier RMSE is point-to-plane over those points.
 """
 
@@ -47,7 +47,7 @@ def _z_order(points: NDArray, cell_m: float) -> NDArray[np.intp]:
     """Return the permutation that puts ``points`` (N, 3) in Z (Morton) order of their
     x, y cells of ``cell_m``."""
     q = np.floor(points[:, :2] / cell_m).astype(np.int64)
-    q = (q - q.min(axis=0)).astype(np.uint64) & np.uint64(0xFFFF)  # 65 536 cells a side
+    q = (q - q.min(axis=0)).astype(np.uint64) & np.uint64(0xFFFF)  # 65 536 cells a side; beyond, only the order suffers
 
     def spread(v: NDArray) -> NDArray:  # put a zero bit between the 16 bits of v
         for shift, mask in ((8, 0x00FF00FF), (4, 0x0F0F0F0F), (2, 0x33333333), (1, 0x55555555)):
