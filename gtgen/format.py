@@ -239,6 +239,14 @@ def is_fill(value: np.ndarray, fill) -> bool:
     return bool((value == f).all())
 
 
+def encode_row(value: np.ndarray, dtype, row_shape: tuple[int, ...], fill) -> bytes | None:
+    """Return the encoded chunk holding one row ``value`` of an array of ``dtype`` and
+    ``fill`` whose chunks are single rows of ``row_shape``; None where it is all fill
+    (zarr stores no such chunk)."""
+    v = np.asarray(value, dtype).reshape(1, *row_shape)
+    return None if is_fill(v, fill) else encode_chunk(v)
+
+
 @dataclass(frozen=True)
 class Encoded:
     """One chunk as stored (``encode_chunk`` bytes, None where the chunk is all fill),
@@ -320,10 +328,10 @@ class ChunkFiles:
         if not self.direct:
             self.arr[int(k)] = value
             return
-        v = np.asarray(value, self.dtype).reshape(1, *self.row_shape)
+        data = encode_row(value, self.dtype, self.row_shape, self.fill)
         file = self._file(k)
-        if is_fill(v, self.fill):
+        if data is None:
             file.unlink(missing_ok=True)
             return
         make_parent(file, self._made)
-        file.write_bytes(encode_chunk(v))
+        file.write_bytes(data)

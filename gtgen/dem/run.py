@@ -26,6 +26,7 @@ from gtgen.dem.tiles import TileIndex, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
 from gtgen.format import ChunkFiles, Encoded
 from gtgen.fuse.run import open_fused
+from gtgen.fuse.store import FUSED_ARRAYS
 from gtgen.geometry import grid_xy, invert, make_transform, quat_to_matrix, quat_to_yaw, yaw_transform
 from gtgen.progress import track
 from gtgen.shards import schema as sc
@@ -314,9 +315,7 @@ _OPEN: dict[tuple[str, str, str], tuple] = {}
 
 # the fused arrays a dataset sample is built from; those not decoded here go into the
 # dataset unchanged, as encoded bytes
-_FUSED_READ = tuple(f"{g}/{r}/{name}" for r in RANGES for g, names in (
-    ("fused", ("region", "elevation_m", "risk", "confidence", "count", "last_dt_s")), ("xracer", ("elevation_m", "risk", "confidence")))
-    for name in names)
+_FUSED_READ = tuple(s.path for s in FUSED_ARRAYS if not s.path.startswith("samples/"))
 _FUSED_DECODED = {f"fused/{r}/{name}" for r in RANGES for name in ("region", "elevation_m")}
 
 

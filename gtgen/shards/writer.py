@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.format import Encoded, RowAppender, chunk_file, compressors, dimension_names, encode_chunk, encodes_like_gtgen, is_fill
+from gtgen.format import Encoded, RowAppender, chunk_file, compressors, dimension_names, encode_row, encodes_like_gtgen
 from gtgen.shards import schema as sc
 
 
@@ -184,8 +184,7 @@ def _inner_chunk(value: NDArray | Encoded, m: _Meta) -> bytes | None:
         if value.shape == (1, *m.row_shape) and value.same_layout(m.dtype, m.fill):
             return value.data
         value = value.decode()[0]
-    v = np.asarray(value, m.dtype).reshape(1, *m.row_shape)
-    return None if is_fill(v, m.fill) else encode_chunk(v)
+    return encode_row(value, m.dtype, m.row_shape, m.fill)
 
 
 # -- byte-wise shard copies --------------------------------------------------------------
