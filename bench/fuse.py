@@ -7,7 +7,7 @@ from _common import drive, fresh_workspace, header, run_measured
 NAIVE = """
 import time, itertools, sys
 from pathlib import Path
-from gtgen.bag.store import open_drive
+from gtgen.storage.stores import open_drive
 from gtgen.config import load_config
 from gtgen.fuse.fusion import naive_fuse_range, fuse_range
 from gtgen.fuse.run import zarr_map_source, sample_grids, params

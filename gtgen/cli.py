@@ -129,7 +129,7 @@ def extract(
         gtgen extract rosbag2_folder --config my_robot.yaml
     """
     cfg = _load(config)
-    from gtgen.bag.extract import run_extract
+    from gtgen.extract import run_extract
 
     out.parent.mkdir(parents=True, exist_ok=True)
     res = run_extract(bags, out, cfg, workers=workers)
@@ -209,7 +209,7 @@ def dem_align(
         gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
     """
     cfg = _load(config)
-    from gtgen.dem.run import run_dem_align
+    from gtgen.dataset.run import run_dem_align
 
     res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg)
     f = np.asarray(res.fitness) if res.fitness else None
@@ -415,26 +415,13 @@ def build(
 
 
 def main() -> None:
-    """Run the CLI; map gtgen errors to one line on stderr and exit code 1."""
+    """Run the CLI: usage errors print the usage and exit 2 (click's standalone mode);
+    gtgen errors and OS errors (a full disk, a permission) print one line and exit 1."""
     try:
-        rc = app(standalone_mode=False)
+        app()
     except GtgenError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(1)
-    except KeyboardInterrupt:
-        typer.echo("error: interrupted", err=True)
-        sys.exit(130)
-    except typer.Exit as ex:
-        sys.exit(ex.exit_code)
-    except typer.Abort:
-        typer.echo("error: aborted", err=True)
+    except OSError as err:
+        typer.echo(f"error: {err.strerror or err}" + (f": '{err.filename}'" if err.filename else ""), err=True)
         sys.exit(1)
-    except Exception as err:  # click usage errors and the like
-        import click
-
-        if isinstance(err, click.exceptions.ClickException):
-            err.show()
-            sys.exit(err.exit_code)
-        raise
-    if isinstance(rc, int) and rc:
-        sys.exit(rc)

@@ -69,7 +69,7 @@ def _default_cameras() -> dict[str, CameraTopics]:
 
 
 class TopicsConfig(_Model):
-    """Topic -> role mapping (SPEC section 2); ``configs/xracer.yaml`` is the default."""
+    """Topic -> role mapping; ``configs/xracer.yaml`` is the default."""
 
     map_micro: str = Field("/xracer/map/micro", description="grid_map_msgs/GridMap, micro range")
     map_short: str = Field("/xracer/map/short", description="grid_map_msgs/GridMap, short range")
@@ -79,7 +79,6 @@ class TopicsConfig(_Model):
     gnss: str = Field("/gnss/fix", description="sensor_msgs/NavSatFix")
     cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras)
     voxel_map: str = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2")
-    lidar: str | None = Field(None, description="optional raw sensor_msgs/PointCloud2 scans")
     odom_frame: str = Field("odom", description="frame of odometry and maps")
     base_frame: str = Field("base_link", description="vehicle base frame")
     layers: LayersConfig = Field(default_factory=LayersConfig)
@@ -111,7 +110,6 @@ class SynthConfig(_Model):
     gnss_rate_hz: float = Field(10.0, gt=0, description="GNSS fix rate [Hz]")
     camera_rate_hz: float = Field(5.0, gt=0, description="camera frame rate, all four [Hz]")
     voxel_rate_hz: float = Field(2.0, gt=0, description="voxel map rate [Hz]")
-    lidar_rate_hz: float = Field(0.0, ge=0, description="raw lidar scan rate, 0 = off [Hz]")
     image_width: int = Field(160, ge=16, description="rendered image width [px]")
     image_height: int = Field(100, ge=16, description="rendered image height [px]")
     camera_hfov_deg: float = Field(100.0, gt=10, lt=170, description="horizontal field of view [deg]")
@@ -162,7 +160,7 @@ class ExtractConfig(_Model):
 
 
 class FuseConfig(_Model):
-    """Hindsight fusion (SPEC section 4, 'fuse')."""
+    """Hindsight fusion of the X-Racer maps in a window around each sample."""
 
     window_s: float = Field(60.0, gt=0, description="future window after the sample [s]")
     past_s: float = Field(0.0, ge=0, description="past window before the sample [s]")

@@ -50,3 +50,7 @@ class AlignmentError(GtgenError, ValueError):
 
 class TrainError(GtgenError, ValueError):
     """Training or evaluation cannot run on the given data or checkpoint."""
+
+
+class LockedError(GtgenError, BlockingIOError):
+    """Another gtgen command is writing (or reading) the same output."""

@@ -1,9 +1,9 @@
 """Transforms, quaternions and grid index maths (numpy, vectorised).
 
 Conventions: transforms are 4x4 ``T_target_source`` (a point in ``source`` maps to
-``target`` as ``T @ p``); quaternions are (x, y, z, w) as in ROS. Grids follow SPEC
-section 3: axis 0 is x, axis 1 is y, index 0 at the most negative coordinate, cell
-(i, j) centre = (-L/2 + (i + 0.5) r, -L/2 + (j + 0.5) r).
+``target`` as ``T @ p``); quaternions are (x, y, z, w) as in ROS. Grids follow the
+layout of data_schema.md: axis 0 is x, axis 1 is y, index 0 at the most negative
+coordinate, cell (i, j) centre = (-L/2 + (i + 0.5) r, -L/2 + (j + 0.5) r).
 """
 
 from __future__ import annotations
@@ -132,3 +132,16 @@ def xy_to_index(x: NDArray, y: NDArray, size: int, resolution_m: float) -> tuple
     j = np.floor((np.asarray(y) + half) / resolution_m).astype(np.int64)
     bad = (i < 0) | (i >= size) | (j < 0) | (j >= size)
     return np.where(bad, -1, i), np.where(bad, -1, j)
+
+
+def rescale_K(K: NDArray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> F64:
+    """Return intrinsics K for an image resized from src to dst size (width, height;
+    pixel centres at integers, as in ROS)."""
+    sx, sy = dst_wh[0] / src_wh[0], dst_wh[1] / src_wh[1]
+    K2 = np.array(K, dtype=np.float64, copy=True)
+    K2[0, 0] *= sx
+    K2[1, 1] *= sy
+    K2[0, 1] *= sx
+    K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K2

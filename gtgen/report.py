@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gtgen import reasons
+from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.geometry import grid_xy, yaw_transform
-from gtgen.shards.schema import open_dataset
+from gtgen.storage.stores import open_dataset
 
-REGIONS = {1: "obs_pc", 2: "obs_f", 3: "unobs"}
+REGIONS = {code: codes.REGIONS[code] for code in codes.LABELLED}
 
 
 @dataclass
@@ -25,11 +25,11 @@ class Report:
 
 
 def _coverage(g, r: str, idx: np.ndarray) -> dict[str, float]:
-    counts = np.zeros(4, np.int64)
+    counts = np.zeros(len(codes.REGIONS), np.int64)
     for k in idx:
-        counts += np.bincount(g[f"labels/{r}/region"][int(k)].ravel(), minlength=4)
+        counts += np.bincount(g[f"labels/{r}/region"][int(k)].ravel(), minlength=len(codes.REGIONS))
     tot = max(int(counts.sum()), 1)
-    return {"no_label": counts[0] / tot, **{REGIONS[i]: counts[i] / tot for i in (1, 2, 3)}}
+    return {codes.REGIONS[i]: counts[i] / tot for i in codes.REGIONS}
 
 
 def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40) -> Report:
@@ -48,19 +48,18 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40) -> R
     rep.card = {
         "dataset": str(dataset),
         "samples_kept": S,
-        "samples_rejected": {reasons.name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
-        "split": {name: int((split == code).sum()) for code, name in ((0, "train"), (1, "val"))},
+        "samples_rejected": {codes.reason_name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
+        "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
         "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(g, r, idx).items()} for r in RANGES} if S else {},
         "icp_fitness": _quantiles(np.concatenate([fit, rfit[np.isfinite(rfit)]])),
         "icp_rmse_m": _quantiles(g["meta/icp_rmse_m"][:]) if S else {},
-        "alignment": attrs.get("alignment", {}),
+        "alignment": attrs.drives[0].alignment if len(attrs.drives) == 1 else {},
     }
-    drives = attrs.get("drives", [])
-    bag_paths = [b["path"] for d in drives for b in d.get("bags", [])]
+    bag_paths = [b.path for d in attrs.drives for b in d.bags]
     from gtgen.synth.truth import Truth
 
     truth = Truth.find(bag_paths)
-    cfg = GtgenConfig.model_validate(attrs["config"])
+    cfg = GtgenConfig.model_validate(attrs.config)
     if truth is not None and S:
         rep.truth = _truth_errors(g, cfg, truth, idx)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -114,7 +113,7 @@ def _truth_errors(g, cfg: GtgenConfig, truth, idx: np.ndarray) -> dict:
                 a["xr_abs"] += float(np.abs(xe[mx] - te[mx]).sum())
                 a["nx"] += int(mx.sum())
             # averaging works: fused vs the single X-Racer map at t on cells both call confident
-            both = ((reg == 1) | (reg == 2)) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
+            both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
             fs = fused_vs_single[r]
             fs["fused_abs"] += float(np.abs(el[both] - te[both]).sum())
             fs["single_abs"] += float(np.abs(xe[both] - te[both]).sum())
@@ -163,7 +162,7 @@ def _figures(g, rep: Report, out_dir: Path, fit, rfit, rej_reason) -> list[Path]
     ax[1].hist(allfit, bins=30, range=(0, 1), color="tab:blue")
     ax[1].set_title("ICP fitness (all aligned samples)")
     ax[1].set_xlabel("fitness")
-    names = [reasons.name(c) for c in np.unique(rej_reason)]
+    names = [codes.reason_name(c) for c in np.unique(rej_reason)]
     vals = [int((rej_reason == c).sum()) for c in np.unique(rej_reason)]
     ax[2].bar(["kept"] + names, [rep.card["samples_kept"]] + vals, color=["tab:green"] + ["tab:red"] * len(vals))
     ax[2].set_title("samples kept / rejected by reason")

@@ -8,7 +8,7 @@ import numpy as np
 
 from gtgen.config import CAMERAS, RANGES
 from gtgen.errors import ConfigError
-from gtgen.shards.schema import open_dataset
+from gtgen.storage.stores import open_dataset
 
 REGION_COLORS = np.array([[0.85, 0.85, 0.85], [0.98, 0.59, 0.15], [0.59, 0.14, 0.57], [0.26, 0.43, 0.69]])
 
@@ -45,7 +45,7 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
         vmin, vmax = np.nanpercentile(el, [2, 98]) if np.isfinite(el).any() else (-1, 1)
         reg = g[f"labels/{r}/region"][index]
         n = el.shape[0]
-        L = n * info.attrs["config"]["grids"][r]["resolution_m"] / 2
+        L = n * info.attrs.config["grids"][r]["resolution_m"] / 2
         ext = (L, -L, -L, L)  # left edge is +y (left), top is +x (forward)
         panels = [
             (el, "terrain", vmin, vmax), (g[f"labels/{r}/risk"][index], "magma", 0, 1),

@@ -14,24 +14,25 @@ dataset holds the drives largest bags first (ties by name), the order they run i
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
-import os
-import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from gtgen import __version__, reasons
-from gtgen.bag.reader import SUFFIXES
-from gtgen.config import GtgenConfig, save_config
+from gtgen import __version__
+from gtgen.bag.reader import SUFFIXES, hash_bag
+from gtgen.config import GtgenConfig
+from gtgen.dataset.merge import merging
+from gtgen.dataset.run import run_dem_align
 from gtgen.errors import ConfigError, GtgenError, InputNotFoundError
-from gtgen.progress import track
+from gtgen.extract import run_extract
+from gtgen.fuse.run import run_fuse
+from gtgen.runtime.output import lock, write_atomic
+from gtgen.runtime.pool import Pool
+from gtgen.runtime.progress import track
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +111,6 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
 def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path, bag_sha256: list[str] | None = None) -> str:
     """Return the hash of one drive unit's inputs (``bag_sha256``: the bags' own hashes,
     computed here if not given)."""
-    from gtgen.bag.extract import hash_bag
-
     h = hashlib.sha256()
     for b, bh in zip(bags, bag_sha256 or [hash_bag(b) for b in bags]):
         h.update(bh.encode())
@@ -128,10 +127,6 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
     """Run extract, fuse and dem-align for one drive (a picklable task for any executor),
     each stage on ``workers`` processes; the bags are hashed while extract reads them
     unless ``bag_sha256`` gives the hashes."""
-    from gtgen.bag.extract import run_extract
-    from gtgen.dem.run import run_dem_align
-    from gtgen.fuse.run import run_fuse
-
     cfg = GtgenConfig.model_validate(cfg_json)
     folder = Path(work) / name
     folder.mkdir(parents=True, exist_ok=True)
@@ -156,9 +151,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
 
 
 def _mark_done(folder: Path, digest: str, res: DriveResult) -> None:
-    tmp = folder / (DONE + ".tmp")
-    tmp.write_text(json.dumps({"hash": digest, "result": res.__dict__}))
-    os.replace(tmp, folder / DONE)
+    write_atomic(folder / DONE, json.dumps({"hash": digest, "result": asdict(res)}))
 
 
 def _already_done(folder: Path, digest: str) -> DriveResult | None:
@@ -180,45 +173,57 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     drives = find_drives(sources)
     work = out / "drives"
     work.mkdir(parents=True, exist_ok=True)
+    with lock(out / "build"):
+        dems = {name: dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem") for name, bags in drives.items()}
+        results, todo = _done_and_todo(drives, dems, work, cfg, workers, scheduler)
+        # drives run largest bags first, so that no worker is left with a long drive at the
+        # end, and the dataset holds them in that same order: each is merged as soon as it and
+        # all before it are done, so merging overlaps with the drives still running
+        order = sorted(drives, key=lambda n: (-sum(_size(b) for b in drives[n]), n))
+        rank = {n: i for i, n in enumerate(order)}
+        todo.sort(key=lambda t: rank[t[0]])
+        with merging(out / "dataset.zarr", cfg) as merger:
+            merged = 0
+
+            def merge_ready() -> None:
+                nonlocal merged
+                while merged < len(order) and order[merged] in results:
+                    res = results[order[merged]]
+                    if res.ok:
+                        merger.add(res.name, work / res.name / "dataset.zarr")
+                    merged += 1
+
+            merge_ready()
+            for res in _execute(todo, workers, scheduler):
+                if res.ok:
+                    _mark_done(work / res.name, unit_hash(drives[res.name], cfg.model_dump(mode="json"), dems[res.name], res.bag_sha256), res)
+                results[res.name] = res
+                merge_ready()
+            ordered = [results[n] for n in order]
+            if not any(r.ok for r in ordered):
+                raise GtgenError("every drive failed: " + "; ".join(f"{r.name}: {r.error}" for r in ordered))
+            n, split = merger.finish(_provenance(ordered))
+    return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
+
+
+def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, Path], work: Path, cfg: GtgenConfig, workers: int,
+                   scheduler: str | None) -> tuple[dict[str, DriveResult], list[tuple]]:
+    """Return the units already done with the same inputs, and the tasks of the others.
+    With fewer drives than workers (one long drive, say) each drive's stages run on the
+    spare workers themselves, so no core idles; a Dask task stays one process."""
     cfg_json = cfg.model_dump(mode="json")
-    todo, results = [], {}
-    dems = {name: dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem") for name, bags in drives.items()}
+    done, todo = {}, []
     for name, bags in drives.items():
         hashes = None
         if (work / name / DONE).is_file():  # hash now only to compare; otherwise extract hashes as it reads
-            from gtgen.bag.extract import hash_bag
-
             hashes = [hash_bag(b) for b in bags]
-            done = _already_done(work / name, unit_hash(bags, cfg_json, dems[name], hashes))
-            if done is not None:
-                results[name] = done
+            res = _already_done(work / name, unit_hash(bags, cfg_json, dems[name], hashes))
+            if res is not None:
+                done[name] = res
                 continue
         todo.append((name, [str(b) for b in bags], str(dems[name]), str(work), cfg_json, hashes))
-    # with fewer drives than workers (one long drive, say) each drive's stages run on the
-    # spare workers themselves, so no core idles; a Dask task stays one process
     inner = 1 if scheduler else max(1, workers // max(len(todo), 1))
-    todo = [(*t, inner) for t in todo]
-    # drives run largest bags first, so that no worker is left with a long drive at the
-    # end, and the dataset holds them in that same order: each is merged as soon as it and
-    # all before it are done, so merging overlaps with the drives still running
-    order = sorted(drives, key=lambda n: (-sum(_size(b) for b in drives[n]), n))
-    rank = {n: i for i, n in enumerate(order)}
-    todo.sort(key=lambda t: rank[t[0]])
-    merger = _Merger(out, cfg)
-
-    def merge_ready() -> None:
-        while merger.next < len(order) and order[merger.next] in results:
-            merger.add(work, results[order[merger.next]])
-
-    merge_ready()
-    for res in _execute(todo, workers, scheduler):
-        if res.ok:
-            _mark_done(work / res.name, unit_hash(drives[res.name], cfg_json, dems[res.name], res.bag_sha256), res)
-        results[res.name] = res
-        merge_ready()
-    ordered = [results[n] for n in order]
-    n, split = merger.close(ordered)
-    return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
+    return done, [(*t, inner) for t in todo]
 
 
 def _execute(todo: list[tuple], workers: int, scheduler: str | None):
@@ -233,109 +238,24 @@ def _execute(todo: list[tuple], workers: int, scheduler: str | None):
             for fut in track(as_completed(futs), "build: drives", total=len(futs)):
                 yield fut.result()
         return
-    workers = min(workers, len(todo))
-    if workers <= 1:
-        for t in track(todo, "build: drives"):
-            yield process_drive(*t)
-        return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
-
-    with _one_thread_each(), ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
-        futs = [ex.submit(process_drive, *t) for t in todo]
-        for fut in track(done_first(futs), "build: drives", total=len(futs)):
-            yield fut.result()
+    with Pool(min(workers, len(todo))) as pool:
+        yield from pool.as_completed(process_drive, todo, "build: drives")
 
 
 def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
 
 
-@contextlib.contextmanager
-def _one_thread_each():
-    """Spawned workers inherit one OpenMP/BLAS thread each (unless the user set them):
-    the pool already keeps every core busy, and nested threads only contend."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in keys}
-    for k in keys:
-        os.environ.setdefault(k, "1")
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-
-
-class _Merger:
-    """Appends each finished drive's samples to ``out/dataset.zarr`` (written atomically),
-    reading whole shards at a time."""
-
-    FIRST_CAPACITY = 1024  # samples; the writer grows the arrays as drives arrive
-
-    def __init__(self, out: Path, cfg: GtgenConfig) -> None:
-        from gtgen.bag.store import partial_path
-
-        self.out, self.cfg = out, cfg
-        self.target = out / "dataset.zarr"
-        self.tmp = partial_path(self.target)
-        shutil.rmtree(self.tmp, ignore_errors=True)
-        self.writer = None
-        self.next = 0
-        self.drives_attr: list[dict] = []
-        self.first_attrs: dict | None = None
-
-    def add(self, work: Path, res: DriveResult) -> None:
-        import zarr
-
-        from gtgen.shards.writer import ShardWriter
-
-        self.next += 1
-        if not res.ok:
-            return
-        g = zarr.open_group(str(work / res.name / "dataset.zarr"), mode="r")
-        a = g.attrs.asdict()
-        if self.writer is None:
-            W, H = a["image_size"]
-            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
-            self.first_attrs = a
-        self.writer.append_dataset(g, work / res.name / "dataset.zarr", len(self.drives_attr), f"build: merging {res.name}")
-        self.drives_attr.append({"name": res.name, "bags": a["drives"][0]["bags"], "crs": a["crs"], "alignment": a["alignment"]})
-
-    def close(self, results: list[DriveResult]) -> tuple[int, dict[str, int]]:
-        import importlib.metadata as md
-
-        import zarr
-
-        from gtgen.bag.store import finalize, jsonable
-        from gtgen.shards import schema as sc
-
-        if self.writer is None:
-            raise GtgenError("every drive failed: " + "; ".join(f"{r.name}: {r.error}" for r in results))
-        a = self.first_attrs
-        versions = {p: md.version(p) for p in ("numpy", "zarr", "rosbags", "rasterio", "pyproj", "open3d-cpu", "torch") if _has(p)}
-        attrs = jsonable({
-            "store": sc.DATASET_STORE, "schema_version": sc.SCHEMA_VERSION, "complete": True, "gtgen_version": __version__,
-            "config": self.cfg.model_dump(mode="json"), "drives": self.drives_attr, "crs": a["crs"],
-            "reasons": reasons.REASONS, "splits": sc.SPLITS, "image_size": a["image_size"], "cameras": a.get("cameras"),
-            "alignment": a["alignment"],
-            "provenance": {"dependencies": versions, "units": [r.__dict__ for r in results]},
-        })
-        n = self.writer.close(attrs)
-        save_config(self.cfg, self.tmp / "gtgen-config.yaml")
-        finalize(self.tmp, self.target)
-        sp = zarr.open_group(str(self.target), mode="r")["meta/split"][:]
-        return n, {sc.SPLITS[int(v)]: int((sp == v).sum()) for v in np.unique(sp)}
-
-
-def _has(pkg: str) -> bool:
+def _provenance(results: list[DriveResult]) -> dict:
     import importlib.metadata as md
 
-    try:
-        md.version(pkg)
-        return True
-    except md.PackageNotFoundError:
-        return False
+    versions = {}
+    for p in ("numpy", "zarr", "rosbags", "rasterio", "pyproj", "open3d-cpu", "open3d", "torch"):
+        try:
+            versions[p] = md.version(p)
+        except md.PackageNotFoundError:
+            pass
+    return {"dependencies": versions, "units": [asdict(r) for r in results]}
 
 
 def summary_rows(res: BuildResult) -> list[tuple[str, Any]]:

@@ -1,4 +1,4 @@
-"""Rewrite the generated tables of data_schema.md from the code's ArraySpec lists."""
+"""Rewrite the generated tables of data_schema.md from the formats in gtgen/storage/schema.py."""
 
 from __future__ import annotations
 
@@ -6,12 +6,10 @@ import re
 import sys
 from pathlib import Path
 
-from gtgen.bag.store import DRIVE_ARRAYS
-from gtgen.format import markdown_table
-from gtgen.fuse.store import FUSED_ARRAYS
-from gtgen.shards.schema import DATASET_ARRAYS
+from gtgen.storage.schema import DATASET, DRIVE, FUSED
+from gtgen.storage.specs import markdown_table
 
-TABLES = {"drive": DRIVE_ARRAYS, "fused": FUSED_ARRAYS, "dataset": DATASET_ARRAYS}
+TABLES = {"drive": list(DRIVE.arrays), "fused": list(FUSED.arrays), "dataset": list(DATASET.arrays)}
 
 
 def render(text: str) -> str:

@@ -43,7 +43,7 @@ def drive_dir(tmp_path_factory, cfg) -> Path:
 
 @pytest.fixture(scope="session")
 def drive_store(tmp_path_factory, drive_dir, cfg) -> Path:
-    from gtgen.bag.extract import run_extract
+    from gtgen.extract import run_extract
 
     out = tmp_path_factory.mktemp("ws") / "drive.zarr"
     run_extract([drive_dir / "drive.mcap"], out, cfg)
@@ -61,7 +61,7 @@ def fused_store(drive_store, cfg) -> Path:
 
 @pytest.fixture(scope="session")
 def dataset(fused_store, drive_store, cfg) -> Path:
-    from gtgen.dem.run import run_dem_align
+    from gtgen.dataset.run import run_dem_align
 
     out = drive_store.parent / "dataset.zarr"
     run_dem_align(drive_store, fused_store, None, out, cfg)

@@ -9,10 +9,10 @@ import pytest
 import rasterio
 
 from conftest import REALDATA, needs_realdata
-from gtgen.dem.run import run_dem_align
+from gtgen.dataset.run import run_dem_align
 from gtgen.dem.tiles import TileIndex, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
-from gtgen.shards.schema import open_dataset
+from gtgen.storage.stores import open_dataset
 
 
 @needs_realdata()
@@ -75,7 +75,7 @@ def test_alignment_and_inpainting_accuracy(dataset):
     for r in ("micro", "short"):
         print(r, "unobs (DEM-filled) MAE", rep.truth[r]["unobs"]["elevation_mae_m"])
         assert rep.truth[r]["unobs"]["elevation_mae_m"] <= 0.25
-    geoid = info.attrs["alignment"]["geoid_offset_m"]
+    geoid = info.attrs.drives[0].alignment["geoid_offset_m"]
     assert -36 < geoid < -30  # estimated, never assumed: the synth geoid is -33 m
 
 
@@ -132,7 +132,7 @@ def test_missing_tile_leaves_unlabelled_cells_not_wrong_labels(drive_dir, drive_
 
 def test_gnss_absent_for_the_whole_drive(drive_dir, cfg, tmp_path):
     from conftest import small_config
-    from gtgen.bag.extract import run_extract
+    from gtgen.extract import run_extract
     from gtgen.fuse.run import run_fuse
 
     c = small_config(topics={"gnss": "/no/gnss"})

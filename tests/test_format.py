@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 import zarr
 
-from gtgen.format import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
-from gtgen.shards import schema as sc
-from gtgen.shards.writer import ShardWriter, write_block
+from gtgen.dataset.writer import ShardWriter, write_block
+from gtgen.storage import schema as sc
+from gtgen.storage.chunks import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
+from gtgen.storage.specs import row_shape
 
 
 def _rows(rng, n=5):
@@ -92,7 +93,7 @@ def _block(rng, S, micro, short, hw, src):
     for k in range(S):
         s = {}
         for spec in sc.SAMPLE_ARRAYS:
-            shape = sc.row_shape(spec, {"n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]})
+            shape = row_shape(spec, {"n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]})
             dt = np.dtype(spec.dtype)
             v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
             if spec.path == "labels/micro/risk" and k == 2:

@@ -8,7 +8,8 @@ import pytest
 from conftest import run_cli
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
-from gtgen.fuse.run import open_fused, run_fuse
+from gtgen.fuse.run import run_fuse
+from gtgen.storage.stores import open_fused
 from gtgen.errors import StoreError
 
 

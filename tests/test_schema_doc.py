@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gtgen.shards import schema as sc
+from gtgen.storage import schema as sc
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -18,7 +18,7 @@ def test_data_schema_md_matches_the_code():
     spec.loader.exec_module(mod)
     doc = (ROOT / "data_schema.md").read_text()
     assert mod.render(doc) == doc, "data_schema.md is stale: run python scripts/update_schema_doc.py"
-    for s in sc.DATASET_ARRAYS:
+    for s in sc.DATASET.arrays:
         assert f"| `{s.path}` | {s.dtype} |" in doc
 
 
@@ -27,7 +27,7 @@ def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset,
 
     g = zarr.open_group(str(dataset), mode="r")
     S = g["meta/t_ns"].shape[0]
-    for s in sc.DATASET_ARRAYS:
+    for s in sc.DATASET.arrays:
         a = g[s.path]
         assert a.dtype == np.dtype(s.dtype), s.path
         if s.shape.startswith("(S,"):
@@ -36,7 +36,7 @@ def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset,
     assert g["labels/micro/elevation_m"].shape == (S, cfg.grids.micro.size, cfg.grids.micro.size)
     assert g["inputs/raw_elevation_m"].shape == (S, cfg.grids.short.size, cfg.grids.short.size)
     a = g.attrs.asdict()
-    assert a["schema_version"] == sc.SCHEMA_VERSION and a["gtgen_version"] and a["config"]["fuse"]["window_s"] == cfg.fuse.window_s
+    assert a["version"] == sc.DATASET.version and a["gtgen_version"] and a["config"]["fuse"]["window_s"] == cfg.fuse.window_s
     assert len(a["drives"][0]["bags"][0]["sha256"]) == 64
 
 

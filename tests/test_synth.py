@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli, small_config
-from gtgen.bag.gridmap import decode_gridmap
+from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
 from gtgen.synth import run_synth
 from gtgen.synth.run import load_world

@@ -110,18 +110,19 @@ def test_bad_datasets(dataset, tmp_path):
 
     import zarr
 
-    from gtgen.shards.writer import ShardWriter
+    from gtgen.dataset.writer import ShardWriter
+    from gtgen.storage.schema import DatasetAttrs
     from gtgen.train.data import ShardDataset
 
     cfg = GtgenConfig()
     other = tmp_path / "other.zarr"
     shutil.copytree(dataset, other)
     g = zarr.open_group(str(other), mode="r+")
-    g.attrs["schema_version"] = 99
-    with pytest.raises(StoreError, match="schema version 99"):
+    g.attrs["version"] = 99
+    with pytest.raises(StoreError, match="version 99"):
         ShardDataset(other, cfg.train)
     w = ShardWriter(tmp_path / "empty.zarr", 0, 8, 8, (4, 4))
-    w.close({"store": "gtgen-dataset", "schema_version": 1, "complete": True, "config": cfg.model_dump(mode="json"), "image_size": [4, 4]})
+    w.close(DatasetAttrs(gtgen_version="0", config=cfg.model_dump(mode="json"), drives=[], image_size=(4, 4), cameras=[]))
     with pytest.raises(TrainError, match="no samples"):
         ShardDataset(tmp_path / "empty.zarr", cfg.train)
     p = run_cli("train", tmp_path / "empty.zarr", "--steps", "1", cwd=tmp_path)

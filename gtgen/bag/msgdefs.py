@@ -55,6 +55,31 @@ def gridmap_types(ros1: bool) -> dict:
     return types
 
 
+def normalize_msgtype(name: str) -> str:
+    """Return a message type name in rosbags' form: 'pkg/Type' (ROS 1) becomes 'pkg/msg/Type'."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def typestore_of(schemas: list, ros1: bool) -> Typestore:
+    """Return a typestore of the message definitions a bag carries (``schemas``, each with
+    ``name``, ``encoding`` and ``data``), or the default one when it carries none."""
+    from rosbags.typesys import get_types_from_idl
+
+    types: dict = {}
+    for s in schemas:
+        text = s.data.decode() if isinstance(s.data, bytes) else str(s.data)
+        if s.encoding == "ros2idl":
+            types.update(get_types_from_idl(text))
+        elif s.encoding in ("ros1msg", "ros2msg"):
+            types.update(get_types_from_msg(text, normalize_msgtype(s.name)))
+    if not types:
+        return typestore(ros1)
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)
+    return store
+
+
 @cache
 def typestore(ros1: bool) -> Typestore:
     """Return a typestore of the standard ROS types plus grid_map_msgs."""

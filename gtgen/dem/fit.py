@@ -8,10 +8,13 @@ UTM grid convergence and any odometry heading offset end up in the yaw.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.bag.poses import PoseTrack
+from gtgen.config import GtgenConfig
 from gtgen.errors import AlignmentError
 
 
@@ -70,3 +73,21 @@ def fit_planar(odom_xyz: NDArray, gnss_enu: NDArray, var_h: NDArray, outlier_m: 
         inl = new
     dz = float(np.median(dst[inl, 2] - src[inl, 2]))
     return PlanarFit(yaw, float(t[0]), float(t[1]), dz, float(np.sqrt(np.mean(r[inl] ** 2))), int(inl.sum()), int((~inl).sum()))
+
+
+def gnss_fit(cfg: GtgenConfig, drive: Any, track: PoseTrack, crs: str) -> PlanarFit:
+    """Return the fit of a drive store's odometry to its GNSS fixes projected into ``crs``."""
+    from pyproj import Transformer
+
+    t = drive["gnss/t_ns"][:]
+    if len(t) == 0:
+        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
+    lat, lon, alt = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/alt_m"][:]
+    status = drive["gnss/status"][:]
+    var = drive["gnss/var_enu_m2"][:]
+    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
+    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
+    pos, _ = track.interpolate(t, strict=False)
+    enu = np.column_stack([E, N, alt])
+    enu[~ok] = np.nan
+    return fit_planar(pos, enu, var[:, :2].mean(axis=1), cfg.dem.gnss_outlier_m, cfg.dem.min_gnss_fixes)

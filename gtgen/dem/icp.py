@@ -2,10 +2,9 @@
 
 Correspondences come from open3d's nearest-neighbour search (built once per target,
 queried in Z-order of the source so that neighbouring queries walk the same tree
-branches: 35 % less search time than a shuffled source); each iteration solves the
-linearised 4-DoF point-to-plane least squares in closed form. Fitness is the share of
-source points with a target point within ``max_distance``; the inlier RMSE is
-point-to-plane over those points.
+branches); each iteration solves the linearised 4-DoF point-to-plane least squares in
+closed form. Fitness is the share of source points with a target point within
+``max_distance``; the inlier RMSE is point-to-plane over those points.
 """
 
 from __future__ import annotations

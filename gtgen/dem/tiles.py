@@ -12,16 +12,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import DemError, InputNotFoundError
+from gtgen.runtime.output import write_atomic
 
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".tif", ".tiff")
-INDEX_VERSION = 1
+INDEX_VERSION = 2
 
 
 @dataclass(frozen=True)
 class Tile:
-    """One tile's header: file, bounds in its CRS [m], CRS, nodata and pixel size [m]."""
+    """One tile's header: file, bounds in its CRS [m], CRS, nodata and pixel size [m], and
+    the file's size [bytes] and mtime that the header cache is keyed on."""
 
     path: str
     left: float
@@ -31,7 +33,7 @@ class Tile:
     crs: str
     nodata: float | None
     res: float
-    size: int
+    file_bytes: int
     mtime_ns: int
 
 
@@ -71,8 +73,9 @@ class TileIndex:
         self._open: OrderedDict[str, object] = OrderedDict()
 
     @classmethod
-    def build(cls, folder: Path, cache: Path | None = None) -> TileIndex:
-        """Return the index of ``folder``; headers are cached in ``cache`` (JSON) by size and mtime."""
+    def build(cls, folder: Path, cache: Path | None = None, update_cache: bool = True) -> TileIndex:
+        """Return the index of ``folder``; headers are cached in ``cache`` (JSON) by size and
+        mtime, rewritten unless ``update_cache`` is False (a worker reading what its stage wrote)."""
         if not folder.is_dir():
             raise InputNotFoundError(f"DEM folder '{folder}' does not exist; pass --dem DIR or set dem.dir")
         files = sorted(p for p in folder.iterdir() if p.suffix.lower() in SUFFIXES)
@@ -90,14 +93,12 @@ class TileIndex:
         for f in files:
             st = f.stat()
             t = known.get(str(f))
-            if t is None or t.size != st.st_size or t.mtime_ns != st.st_mtime_ns:
+            if t is None or t.file_bytes != st.st_size or t.mtime_ns != st.st_mtime_ns:
                 t = _read_header(f)
             tiles.append(t)
-        if cache is not None:
+        if cache is not None and update_cache:
             try:
-                tmp = cache.with_suffix(".tmp")
-                tmp.write_text(json.dumps({"version": INDEX_VERSION, "tiles": [asdict(t) for t in tiles]}))
-                tmp.replace(cache)
+                write_atomic(cache, json.dumps({"version": INDEX_VERSION, "tiles": [asdict(t) for t in tiles]}))
             except OSError as err:
                 log.warning("cannot write the DEM index cache '%s': %s", cache, err)
         return cls(tiles)
@@ -123,6 +124,12 @@ class TileIndex:
         else:
             self._open.move_to_end(path)
         return ds
+
+    def __enter__(self) -> TileIndex:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def close(self) -> None:
         """Close every open tile."""

@@ -1,6 +1,6 @@
 """Hindsight fusion of one range's maps into each sample's target grid.
 
-Semantics (SPEC section 4, 'fuse'), for a sample at t with current map m0 (the latest
+Semantics (data_schema.md, 'Regions'), for a sample at t with current map m0 (the latest
 map stamped <= t) and window [a, b] = [min(t - past, t_m0), t + window]:
 
 - elevation: mean over maps in the window where the cell is finite and
@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen import codes
 from gtgen.fuse.lattice import Atlas, LatticeMap, gather_map, target_lattice_index
 
 
@@ -121,7 +122,7 @@ def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParam
     else:
         xe = xr = xc = np.full(I.shape, np.nan)
     cur = np.isfinite(xe) & (xc > p.min_conf)
-    region = np.where(cur, 1, np.where(cnt > 0, 2, 3)).astype(np.uint8)
+    region = np.where(cur, codes.OBS_PC, np.where(cnt > 0, codes.OBS_F, codes.UNOBS)).astype(np.uint8)
     last_dt = np.where(last >= 0, (last - s.t_ns) * 1e-9, np.nan).astype(np.float32)
     return Fused(
         elevation=elev, confidence=conf, risk=risk.astype(np.float32), count=np.minimum(cnt, 65535).astype(np.uint16),

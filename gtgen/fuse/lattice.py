@@ -75,7 +75,7 @@ def target_lattice_index(size: int, grid_res: float, lattice_res: float, pos: ND
     """Return lattice indices (I, J) (size, size) of the cell centres of a sample's target grid.
 
     The target grid is vehicle-centric and gravity-aligned: centre at ``pos`` (odom),
-    x along ``yaw``; axis 0 is x, index 0 at -L/2 (SPEC section 3).
+    x along ``yaw``; axis 0 is x, index 0 at -L/2 (data_schema.md, 'Grids').
     """
     cc = -0.5 * size * grid_res + (np.arange(size) + 0.5) * grid_res
     X, Y = np.meshgrid(cc, cc, indexing="ij")

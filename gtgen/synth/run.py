@@ -15,7 +15,8 @@ import numpy as np
 from gtgen.config import GtgenConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
 from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
-from gtgen.progress import track
+from gtgen.runtime.output import stage_output
+from gtgen.runtime.progress import track
 from gtgen.synth import sensors
 from gtgen.synth.drive import gnss_errors
 from gtgen.synth.messages import MessageFactory
@@ -96,9 +97,9 @@ class _Sinks:
 
 
 def _fast_zstd(writer: object) -> None:
-    """Compress the MCAP chunks at zstd level 1 instead of rosbags' default 3: about twice
-    as fast to write (the synth's main process compresses every chunk) for files ~5 %
-    larger; any zstd reader reads them. Left as is if rosbags' writer changes shape."""
+    """Compress the MCAP chunks at zstd level 1 instead of rosbags' default 3: faster to
+    write (the synth's main process compresses every chunk) for slightly larger files;
+    any zstd reader reads them. Left as is if rosbags' writer changes shape."""
     import zstandard
     from rosbags.rosbag2.storage_mcap import McapWriter
 
@@ -107,7 +108,7 @@ def _fast_zstd(writer: object) -> None:
         storage.compressor = zstandard.ZstdCompressor(level=1).compress
 
 
-def _prepare_out(out: Path, overwrite: bool) -> Path:
+def _check_out(out: Path, overwrite: bool) -> None:
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise ConfigError(f"output '{out}' exists and is not empty; choose another OUT or pass --overwrite")
     parent = out.resolve().parent
@@ -120,27 +121,15 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
             raise ConfigError(f"cannot create the parent folder of OUT '{out}': {err.strerror}") from err
     if not os.access(parent, os.W_OK):
         raise ConfigError(f"output folder '{parent}' is not writable")
-    tmp = parent / f".{out.name}.partial"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.mkdir()
-    except OSError as err:
-        raise ConfigError(f"cannot write OUT '{out}': {err.strerror}") from err
-    return tmp
 
 
 def run_synth(cfg: GtgenConfig, out: Path, overwrite: bool = False) -> SynthResult:
-    """Write a synthetic drive into folder ``out``; all or nothing (a temp folder is renamed)."""
-    tmp = _prepare_out(out, overwrite)
-    try:
+    """Write a synthetic drive into folder ``out``; all or nothing (written aside, then renamed)."""
+    _check_out(out, overwrite)
+    with stage_output(out) as tmp:
+        tmp.mkdir()
         result = _write_drive(cfg, tmp)
         save_config(cfg, tmp / "gtgen-config.yaml")
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     result.out = out
     result.bags = [out / p.name for p in result.bags]
     result.dem_tiles = [out / "dem" / p.name for p in result.dem_tiles]

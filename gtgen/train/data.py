@@ -13,10 +13,11 @@ import torch
 from numpy.typing import NDArray
 from torch.utils.data import Dataset
 
-from gtgen.bag.extract import rescale_K
+from gtgen import codes
 from gtgen.config import GtgenConfig, TrainConfig
 from gtgen.errors import TrainError
-from gtgen.shards.schema import open_dataset
+from gtgen.geometry import rescale_K
+from gtgen.storage.stores import open_dataset
 
 IMAGE_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGE_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -54,18 +55,18 @@ class ShardDataset(Dataset):
             raise TrainError(f"dataset '{path}' has no samples; nothing to train or evaluate on")
         self.path = path
         self.tc = tc
-        self.data_cfg = GtgenConfig.model_validate(info.attrs["config"])
+        self.data_cfg = GtgenConfig.model_validate(info.attrs.config)
         self.info = info
         idx = np.arange(info.n_samples)
         if split is not None:
-            code = {"train": 0, "val": 1}[split]
+            code = codes.split_code(split)
             idx = idx[g["meta/split"][:] == code]
         self.indices = idx
         self.max_points = max_points
         self._g = None
         self._offsets = g["inputs/voxel_offsets"][:]
         self._ix = {r: nearest_index(getattr(info, r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
-        W_in, H_in = info.attrs["image_size"]
+        W_in, H_in = info.attrs.image_size
         self._img_ix = (nearest_index(H_in, tc.image_height), nearest_index(W_in, tc.image_width))
         self._img_src = (W_in, H_in)
         # smoothing window of each range's prior, in that range's model cells (odd)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from gtgen import codes
 from gtgen.config import TrainConfig
 
 
@@ -20,8 +21,8 @@ def range_losses(pred: dict, batch: dict, rng: str, alpha: float, beta: float = 
     el = batch[f"{rng}/elevation"]
     reg = batch[f"{rng}/region"]
     sl1 = F.smooth_l1_loss(pred[f"{rng}/elevation"], torch.nan_to_num(el), reduction="none", beta=beta)
-    obs = ((reg == 1) | (reg == 2)).float() * torch.isfinite(el).float()
-    unobs = (reg == 3).float() * torch.isfinite(el).float()
+    obs = ((reg == codes.OBS_PC) | (reg == codes.OBS_F)).float() * torch.isfinite(el).float()
+    unobs = (reg == codes.UNOBS).float() * torch.isfinite(el).float()
     return l_trav, _masked_mean(sl1, obs) + alpha * _masked_mean(sl1, unobs)
 
 

@@ -7,7 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-REGIONS = {"obs_pc": (1,), "obs_f": (2,), "unobs": (3,), "total": (1, 2, 3)}
+from gtgen import codes
+
+REGIONS = {**{codes.REGIONS[c]: (c,) for c in codes.LABELLED}, "total": codes.LABELLED}
 
 
 @dataclass
@@ -22,8 +24,8 @@ class ElevationMAE:
         """Accumulate where the label exists; NaN predictions count against coverage only."""
         lab = np.isfinite(label_m)
         have = lab & np.isfinite(pred_m)
-        for name, codes in REGIONS.items():
-            m = np.isin(region, codes)
+        for name, cs in REGIONS.items():
+            m = np.isin(region, cs)
             self.n_label[name] += int((m & lab).sum())
             sel = m & have
             self.n[name] += int(sel.sum())

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import random
 import time
 from dataclasses import dataclass
@@ -16,7 +15,8 @@ from torch.utils.data import DataLoader
 
 from gtgen.config import GtgenConfig, TrainConfig, configs_dir, read_yaml, save_config
 from gtgen.errors import ConfigError, TrainError
-from gtgen.progress import track
+from gtgen.runtime.output import atomic_output, lock, write_atomic
+from gtgen.runtime.progress import track
 from gtgen.train.data import ShardDataset
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
@@ -76,13 +76,19 @@ class TrainResult:
 
 
 def _save(path: Path, payload: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    with atomic_output(path) as tmp:
+        torch.save(payload, tmp)
 
 
 def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, max_steps: int | None = None) -> TrainResult:
-    """Train M&M-lite on the train split of ``dataset``; checkpoints and metrics go to ``run_dir``."""
+    """Train M&M-lite on the train split of ``dataset``; checkpoints and metrics go to ``run_dir``
+    (locked while training, so a second run into it stops with a one-line error)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with lock(run_dir), lock(dataset, shared=True):
+        return _train(dataset, run_dir, cfg, resume, max_steps)
+
+
+def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_steps: int | None) -> TrainResult:
     tc = cfg.train
     seed_everything(tc.seed)
     ds = ShardDataset(dataset, tc, split="train")
@@ -138,7 +144,7 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
                               "optim": opt.state_dict(), "sched": sched.state_dict(), "step": step, "history": history,
                               "torch_rng": torch.get_rng_state()})
     secs = time.perf_counter() - t0
-    (run_dir / "metrics.json").write_text(json.dumps({"history": history, "seconds": secs}, indent=1))
+    write_atomic(run_dir / "metrics.json", json.dumps({"history": history, "seconds": secs}, indent=1))
     latest = run_dir.parent / "latest"
     if latest.is_symlink() or not latest.exists():
         if latest.is_symlink():

@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.reader import stamp_ns
+from gtgen.bag.decode.tf import frame_id
 from gtgen.errors import DecodeError
 from gtgen.geometry import quat_to_yaw
 
@@ -84,7 +85,7 @@ def decode_gridmap(msg: object, layers: list[str] | None = None) -> GridMapData:
     q = info.pose.orientation
     return GridMapData(
         stamp_ns=stamp_ns(hdr),
-        frame_id=str(hdr.frame_id).lstrip("/"),
+        frame_id=frame_id(hdr.frame_id),
         resolution_m=res,
         center_m=np.array([p.x, p.y, p.z], dtype=np.float64),
         yaw_rad=float(quat_to_yaw(np.array([q.x, q.y, q.z, q.w]))) if (q.x or q.y or q.z or q.w) else 0.0,

@@ -1,0 +1,1 @@
+"""Decoders of the ROS messages gtgen reads into numpy arrays in gtgen's layouts."""

@@ -1,0 +1,44 @@
+"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.errors import DecodeError
+
+CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
+
+
+def decode_image(msg: object, msgtype: str) -> NDArray[np.uint8]:
+    """Return an RGB uint8 image (H, W, 3) from a CompressedImage or Image message."""
+    from PIL import Image
+
+    if msgtype.endswith("CompressedImage"):
+        try:
+            img = Image.open(io.BytesIO(bytes(msg.data))).convert("RGB")  # type: ignore[attr-defined]
+        except Exception as err:  # noqa: BLE001 - PIL raises several types
+            raise DecodeError(f"CompressedImage ({msg.format!r}) does not decode: {err}") from err  # type: ignore[attr-defined]
+        return np.asarray(img)
+    enc = str(msg.encoding).lower()  # type: ignore[attr-defined]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)  # type: ignore[attr-defined]
+    raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if enc not in CHANNELS:
+        raise DecodeError(f"Image encoding {enc!r} unsupported; expected one of {sorted(CHANNELS)}")
+    arr = raw[: h * step].reshape(h, step)[:, : w * CHANNELS[enc]].reshape(h, w, CHANNELS[enc])
+    if enc.startswith("bgr"):
+        arr = arr[..., [2, 1, 0]]
+    if CHANNELS[enc] == 1:
+        arr = np.repeat(arr, 3, axis=-1)
+    return np.ascontiguousarray(arr[..., :3])
+
+
+def resize_image(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
+    """Return ``img`` resized (bilinear) to width x height."""
+    if img.shape[1] == width and img.shape[0] == height:
+        return img
+    from PIL import Image
+
+    return np.asarray(Image.fromarray(img).resize((width, height), Image.BILINEAR))

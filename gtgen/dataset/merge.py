@@ -1,0 +1,57 @@
+"""Merge drives' datasets into one, drive after drive, as their samples' shard bytes."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
+from gtgen.config import GtgenConfig, save_config
+from gtgen.dataset.run import dataset_attrs
+from gtgen.dataset.split import split_counts
+from gtgen.dataset.writer import ShardWriter
+from gtgen.errors import GtgenError
+from gtgen.runtime.output import atomic_output
+from gtgen.storage.schema import DatasetAttrs, DriveEntry
+from gtgen.storage.stores import open_dataset
+
+
+class DatasetMerger:
+    """Appends each drive's dataset to the partial dataset at ``tmp`` in turn, reading
+    whole shards at a time; ``finish`` writes the attributes."""
+
+    FIRST_CAPACITY = 1024  # samples; the writer grows the arrays as drives arrive
+
+    def __init__(self, tmp: Path, cfg: GtgenConfig) -> None:
+        self.tmp, self.cfg = tmp, cfg
+        self.writer: ShardWriter | None = None
+        self.drives: list[DriveEntry] = []
+        self._first: DatasetAttrs | None = None
+
+    def add(self, name: str, dataset: Path) -> int:
+        """Append the samples of the dataset at ``dataset`` as drive ``name``; return how many."""
+        g, info = open_dataset(dataset)
+        if self.writer is None:
+            W, H = info.attrs.image_size
+            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
+            self._first = info.attrs
+        n = self.writer.append_dataset(g, dataset, len(self.drives), f"build: merging {name}")
+        self.drives += [d.model_copy(update={"name": name}) for d in info.attrs.drives]
+        return n
+
+    def finish(self, provenance: dict | None = None) -> tuple[int, dict[str, int]]:
+        """Write the merged dataset's attributes; return (samples, split counts)."""
+        if self.writer is None or self._first is None:
+            raise GtgenError("no drive to merge: every drive failed")
+        first = {"image_size": self._first.image_size, "cameras": self._first.cameras}
+        n = self.writer.close(dataset_attrs(self.cfg, self.drives, first, provenance))
+        save_config(self.cfg, self.tmp / "gtgen-config.yaml")
+        return n, split_counts(self.writer.root["meta/split"][:]) if n else {}
+
+
+@contextlib.contextmanager
+def merging(path: Path, cfg: GtgenConfig) -> Iterator[DatasetMerger]:
+    """Yield a merger whose dataset appears at ``path`` only when the block succeeds (call
+    ``finish`` inside it). Use inside a held lock of ``path``."""
+    with atomic_output(path) as tmp:
+        yield DatasetMerger(tmp, cfg)

@@ -1,0 +1,65 @@
+"""Which topic plays which role: the config's mapping checked against the bags' topics."""
+
+from __future__ import annotations
+
+from gtgen.bag.reader import TopicInfo
+from gtgen.config import CAMERAS, RANGES, GtgenConfig
+from gtgen.errors import TopicError
+
+TYPES = {
+    "odometry": ("nav_msgs/msg/Odometry",),
+    "gnss": ("sensor_msgs/msg/NavSatFix",),
+    "voxel_map": ("sensor_msgs/msg/PointCloud2",),
+    "image": ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
+    "info": ("sensor_msgs/msg/CameraInfo",),
+    "tf": ("tf2_msgs/msg/TFMessage",),
+    "map": ("grid_map_msgs/msg/GridMap",),
+}
+
+LARGE = ("camera.", "map.", "voxel_map")  # roles whose messages are staged or read again
+
+
+def is_large(role: str) -> bool:
+    """Whether messages of ``role`` are large (images, maps, voxel maps)."""
+    return role.startswith(LARGE)
+
+
+def _require(topics: dict[str, TopicInfo], role: str, topic: str, kind: str) -> None:
+    info = topics.get(topic)
+    types = TYPES[kind]
+    if info is None:
+        cands = sorted(t for t, i in topics.items() if i.msgtype in types)
+        raise TopicError(f"role '{role}': topic '{topic}' not in the bags; {types[0].split('/')[-1]} topics found: {cands}")
+    if info.msgtype not in types:
+        raise TopicError(f"role '{role}': topic '{topic}' has type {info.msgtype}; expected {' or '.join(types)}")
+
+
+def resolve_roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, str]:
+    """Return topic -> role for every role present, raising for missing required roles."""
+    tp = cfg.topics
+    roles: dict[str, str] = {}
+    for r in RANGES:
+        _require(topics, f"map.{r}", tp.map_topic(r), "map")
+        roles[tp.map_topic(r)] = f"map.{r}"
+    _require(topics, "voxel_map", tp.voxel_map, "voxel_map")
+    roles[tp.voxel_map] = "voxel_map"
+    for c in CAMERAS:
+        _require(topics, f"camera.{c}", tp.cameras[c].image, "image")
+        _require(topics, f"camera_info.{c}", tp.cameras[c].info, "info")
+        roles[tp.cameras[c].image] = f"camera.{c}"
+        roles[tp.cameras[c].info] = f"camera_info.{c}"
+    if tp.odometry in topics:
+        _require(topics, "odometry", tp.odometry, "odometry")
+        roles[tp.odometry] = "odometry"
+    elif tp.tf in topics:
+        roles[tp.tf] = "tf"
+    else:
+        _require(topics, "odometry", tp.odometry, "odometry")
+    if tp.tf_static in topics:
+        roles[tp.tf_static] = "tf_static"
+    else:
+        raise TopicError(f"role 'tf_static': topic '{tp.tf_static}' not in the bags; camera extrinsics come from it")
+    if tp.gnss in topics:
+        _require(topics, "gnss", tp.gnss, "gnss")
+        roles[tp.gnss] = "gnss"
+    return roles

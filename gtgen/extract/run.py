@@ -1,0 +1,125 @@
+"""``gtgen extract``: bags -> a time-indexed per-drive store, in one read of the bags.
+
+``run_extract`` reads like its steps: open the bags and resolve the roles, read them in
+record-time slices on the pool (each slice staging what the plan will likely keep),
+merge the slices, build the pose track, select the samples, and write the store.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gtgen import __version__, codes
+from gtgen.bag.reader import BagSet, hash_bag
+from gtgen.config import CAMERAS, RANGES, GtgenConfig, save_config
+from gtgen.errors import BagError, DecodeError
+from gtgen.extract import calib
+from gtgen.extract.roles import resolve_roles
+from gtgen.extract.scan import Scan, import_readers, scan_slice, slices
+from gtgen.extract.select import Plan, select
+from gtgen.extract.write import Slices, write_large, write_small
+from gtgen.runtime.output import stage_output
+from gtgen.runtime.pool import Pool
+from gtgen.storage.schema import DRIVE
+from gtgen.storage.stores import create_group, store_attrs
+
+
+@dataclass
+class ExtractResult:
+    """What an extract did: the store, per-topic stats, sample counts by reason."""
+
+    store: Path
+    topics: list[dict]
+    n_candidates: int
+    n_samples: int
+    rejected: dict[str, int]
+    maps_kept: dict[str, int]
+    skew_s: dict[str, float]
+    warnings: list[str]
+    reread: int = 0  # kept messages no slice had staged, read in a second pass
+    bag_sha256: list[str] = field(default_factory=list)  # of each bag, in the order given
+
+    def report(self) -> dict[str, Any]:
+        """Return the report stored in the drive store's attributes."""
+        return {"topics": self.topics, "n_candidates": self.n_candidates, "n_samples": self.n_samples,
+                "rejected": self.rejected, "maps_kept": self.maps_kept, "skew_s": self.skew_s,
+                "reread": self.reread, "warnings": self.warnings}
+
+
+def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, n_slices: int | None = None,
+                staging: bool = True, bag_sha256: list[str] | None = None) -> ExtractResult:
+    """Read the bags of one drive into the drive store ``out`` (written atomically).
+
+    The bags are read as record-time slices on ``workers`` processes (``n_slices`` fixes
+    their number, for tests), once: each slice stages what the plan will likely keep.
+    ``staging=False`` stages nothing and reads the kept messages in a second pass (the
+    two-pass reference). The store depends on none of the three. ``bag_sha256``, the
+    bags' hashes if the caller has them already, spares hashing them again.
+    """
+    if bag_sha256 is not None and len(bag_sha256) != len(paths):
+        raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
+    with stage_output(out) as tmp, Pool(workers, warm=import_readers) as pool, \
+            ThreadPoolExecutor(max_workers=1) as hasher:  # hashing releases the GIL: it overlaps the read
+        roles, bounds = _open(paths, cfg, workers, n_slices)
+        hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []
+        root = create_group(tmp)  # before the read: the slices stage into it
+        scan, parts = _read(pool, paths, cfg, roles, bounds, tmp if staging else None)
+        track, warnings = calib.pose_track(cfg, scan)
+        plan = _plan(cfg, track, scan)
+        write_small(root, scan, track, plan, calib.extrinsics(cfg, scan))
+        reread = write_large(root, tmp, paths, cfg, roles, scan, track, plan, parts, pool)
+        result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
+        _finish(root, tmp, paths, cfg, result)
+    return result
+
+
+def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list]:
+    """Open the bags once: the roles of their topics and the read's slices."""
+    with BagSet(paths) as bags:
+        return resolve_roles(cfg, bags.topics()), slices(bags, workers, n_slices)
+
+
+def _read(pool: Pool, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], bounds: list, stage: Path | None
+          ) -> tuple[Scan, Slices]:
+    """Read every slice on the pool; return the merged scan and the slices' parts."""
+    jobs = [(paths, cfg, roles, a, b, None if stage is None else str(stage), k) for k, (a, b) in enumerate(bounds)]
+    parts = list(pool.map(scan_slice, jobs, "extract: reading"))
+    slices_ = Slices(bounds, [p.counts() for p in parts], [p.staged for p in parts] if stage is not None else [])
+    scan = parts[0]  # before merging, the counts above: the merge grows parts[0]
+    for part in parts[1:]:
+        scan.extend(part)
+    for r in RANGES:
+        if not any(ok for _, ok in scan.map_meta.get(f"map.{r}", [])):
+            st = scan.stats[cfg.topics.map_topic(r)]
+            raise DecodeError(f"{st.topic}: none of its {st.count} GridMaps is usable: {st.first_error or 'no message'}")
+    return scan, slices_
+
+
+def _plan(cfg: GtgenConfig, track: Any, scan: Scan) -> Plan:
+    plan = select(cfg, track, scan)
+    if len(plan.t) == 0:
+        raise BagError(f"no sample passed selection out of {len(plan.cand_t)} candidates: {codes.reason_counts(plan.cand_reason)}")
+    return plan
+
+
+def _result(out: Path, scan: Scan, plan: Plan, warnings: list[str], reread: int, bag_sha256: list[str] | None,
+            hashes: list[Future]) -> ExtractResult:
+    return ExtractResult(
+        store=out, topics=[s.summary() for s in scan.stats.values()], n_candidates=len(plan.cand_t), n_samples=len(plan.t),
+        rejected=codes.reason_counts(plan.cand_reason), maps_kept={r: len(plan.map_t[r]) for r in RANGES},
+        skew_s=plan.skews(), warnings=warnings, reread=reread, bag_sha256=bag_sha256 or [h.result() for h in hashes],
+    )
+
+
+def _finish(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, result: ExtractResult) -> None:
+    """Write the store's attributes (last: they mark it complete) and its config."""
+    root.attrs.update(store_attrs(
+        DRIVE, gtgen_version=__version__,
+        bags=[{"path": str(p.resolve()), "sha256": h} for p, h in zip(paths, result.bag_sha256)],
+        config=cfg.model_dump(mode="json"), report=result.report(), reasons=codes.REASONS,
+        image_size=[cfg.extract.image_width, cfg.extract.image_height], cameras=list(CAMERAS),
+    ))
+    save_config(cfg, tmp / "gtgen-config.yaml")

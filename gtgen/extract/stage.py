@@ -1,0 +1,175 @@
+"""Staging: the single pass keeps what the plan will likely want.
+
+The plan (sample times, kept maps) needs every stamp of the drive, so it exists only
+once all slices are read. Rather than read the bags a second time, each slice stages
+what the plan will likely keep while it reads: every image, every voxel cloud, the
+earliest map of each thinning period and, for each front-camera frame (a sample time
+is always one), the latest map stamped at or before it. Each is written as the encoded
+chunk file it will be in the store (``storage.chunks.encode_chunk``), and once the plan
+exists the kept ones are moved into place by rename; anything the plan wants but no
+slice staged (stamps far out of record order) is read in a second, targeted pass. The
+store does not depend on what was staged.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.bag.decode.gridmap import decode_gridmap
+from gtgen.bag.decode.image import decode_image, resize_image
+from gtgen.bag.decode.pointcloud import decode_pointcloud
+from gtgen.bag.decode.tf import frame_id
+from gtgen.config import RANGES, GtgenConfig
+from gtgen.errors import DecodeError
+from gtgen.extract.voxels import nearest_points, padded
+from gtgen.runtime.pool import BackgroundWrites
+from gtgen.storage.chunks import encode_chunk, make_parent
+from gtgen.storage.schema import MAP_LAYERS
+
+STAGE = "stage"  # folder of the partial store holding staged chunks; removed before the store completes
+
+
+def period_ns(cfg: GtgenConfig) -> int:
+    return int(1e9 / cfg.extract.map_rate_hz)
+
+
+@dataclass
+class Staged:
+    """What one slice staged: the slice ordinals staged per role (chunk files named by
+    ordinal), map poses as stamped (frames resolved later), voxel point counts (voxel
+    maps in base_link are kept raw in .npy files, for the pose track to place)."""
+
+    k: int
+    dir: str
+    ordinals: dict[str, set[int]] = field(default_factory=lambda: defaultdict(set))
+    map_pose: dict[tuple[str, int], tuple[NDArray, float, str]] = field(default_factory=dict)
+    map_shape: dict[str, tuple[int, int]] = field(default_factory=dict)
+    voxels: dict[int, tuple[int, int]] = field(default_factory=dict)  # ordinal -> (points, stamp); -1 points: raw .npy
+
+    def chunk(self, role: str, i: int, layer: str = "") -> Path:
+        """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
+        return Path(self.dir) / (f"{role}.{layer}" if layer else role) / str(i)
+
+    def raw_voxels(self, i: int) -> Path:
+        """Return the .npy file of voxel map ``i`` staged in its own frame (base_link)."""
+        return Path(self.dir) / "voxel_map.raw" / f"{i}.npy"
+
+
+class Stager:
+    """Stages images, voxel clouds and likely maps of one slice as encoded chunk files in
+    ``<store>/stage/<k>`` (written on threads)."""
+
+    def __init__(self, store: str, k: int, cfg: GtgenConfig) -> None:
+        self.cfg = cfg
+        self.result = Staged(k, str(Path(store) / STAGE / str(k)))
+        tp = cfg.topics
+        self.layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
+        self.period = period_ns(cfg)
+        self.bin_first: dict[str, dict[int, int]] = defaultdict(dict)  # role -> {period: earliest stamp staged}
+        self.held: dict[str, list[tuple[int, int, object]]] = defaultdict(list)  # role -> [(stamp, ordinal, msg)]
+        self.pending: dict[str, list[int]] = defaultdict(list)  # role -> front stamps awaiting their map
+        self.made: set[Path] = set()
+
+    def __enter__(self) -> Stager:
+        self.writes = BackgroundWrites().__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if exc[0] is None:
+                for role in list(self.held):
+                    for h in self.held[role]:  # the next slice's first frames may want them
+                        self._stage_map(role, h)
+        finally:
+            self.writes.__exit__(*exc)
+
+    def _write(self, file: Path, value: NDArray) -> None:
+        make_parent(file, self.made)
+        self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
+
+    def add(self, role: str, i: int, t: int, msg: object, msgtype: str, ok: bool) -> None:
+        """Take message ``i`` (slice ordinal) of a large role, stamped ``t``; ``ok`` is
+        False for a map the plan cannot use."""
+        if role.startswith("camera."):
+            self._stage_image(role, i, msg, msgtype)
+            if role == "camera.front":
+                for r in RANGES:
+                    self.pending[f"map.{r}"].append(t)
+                    self._resolve(f"map.{r}")
+        elif role == "voxel_map":
+            self._stage_voxel(i, t, msg)
+        elif ok:
+            b = t // self.period
+            if t < self.bin_first[role].get(b, t + 1):
+                self.bin_first[role][b] = t
+                self._stage_map(role, (t, i, msg))
+            self.held[role].append((t, i, msg))
+            self._resolve(role)
+
+    def _stage_image(self, role: str, i: int, msg: object, msgtype: str) -> None:
+        W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
+        try:
+            img = resize_image(decode_image(msg, msgtype), W, H)
+        except DecodeError:
+            return  # staged nothing: if the plan wants it, the targeted pass reports the error
+        self._write(self.result.chunk(role, i), img)
+        self.result.ordinals[role].add(i)
+
+    def _stage_voxel(self, i: int, t: int, msg: object) -> None:
+        tp = self.cfg.topics
+        frame = frame_id(msg.header.frame_id)  # type: ignore[attr-defined]
+        if frame not in ("", tp.odom_frame, tp.base_frame):
+            return
+        try:
+            pts = decode_pointcloud(msg)
+        except DecodeError:
+            return
+        if frame == tp.base_frame:  # to odom once the whole pose track is known
+            f = self.result.raw_voxels(i)
+            make_parent(f, self.made)
+            np.save(f, pts)
+            self.result.voxels[i] = (-1, t)
+            return
+        pts = nearest_points(pts, self.cfg.shards.max_voxel_points)
+        self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
+        self.result.voxels[i] = (len(pts), t)
+
+    def _resolve(self, role: str) -> None:
+        """Stage, for each front frame older than the newest map, the latest map stamped at
+        or before it; keep held only the maps a later frame may still want."""
+        held = self.held[role]
+        if not held:
+            return
+        newest = max(h[0] for h in held)
+        still = []
+        for tf in self.pending[role]:
+            if tf < newest:
+                before = [h for h in held if h[0] <= tf]
+                if before:
+                    self._stage_map(role, max(before, key=lambda h: h[0]))
+            else:
+                still.append(tf)
+        self.pending[role] = still
+        m = min(still) if still else newest
+        floor = max((h[0] for h in held if h[0] <= m), default=min(h[0] for h in held))
+        self.held[role] = [h for h in held if h[0] >= floor]
+
+    def _stage_map(self, role: str, h: tuple[int, int, object]) -> None:
+        _, i, msg = h
+        if i in self.result.ordinals[role]:
+            return
+        try:
+            g = decode_gridmap(msg, self.layer_names)
+        except DecodeError:
+            return
+        if g.shape != self.result.map_shape.setdefault(role, g.shape):
+            return  # a size change: the targeted pass reports it if the plan wants this map
+        for name, layer in zip(MAP_LAYERS, self.layer_names):
+            self._write(self.result.chunk(role, i, name), g.layers[layer])
+        self.result.ordinals[role].add(i)
+        self.result.map_pose[(role, i)] = (g.center_m, g.yaw_rad, g.frame_id)

@@ -1,0 +1,302 @@
+"""Writing the drive store: the small arrays at once, then the plan's images, maps and
+voxel clouds, staged ones by moving their chunk files and the rest by a targeted second
+pass over the slices that hold them. One chunk per image, map and voxel map, so slices
+never write the same chunk."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.bag.decode.gridmap import decode_gridmap
+from gtgen.bag.decode.image import decode_image, resize_image
+from gtgen.bag.poses import PoseTrack
+from gtgen.bag.reader import BagSet
+from gtgen.config import CAMERAS, RANGES, GtgenConfig
+from gtgen.errors import BagError, DecodeError
+from gtgen.extract.calib import map_to_odom
+from gtgen.extract.roles import is_large
+from gtgen.extract.scan import Scan
+from gtgen.extract.select import Plan
+from gtgen.extract.stage import STAGE, Staged
+from gtgen.extract.voxels import base_to_odom, nearest_points, padded, voxel_points
+from gtgen.runtime.pool import BackgroundWrites, Pool
+from gtgen.storage.chunks import Runs, check_encoded_chunks, chunk_file, compressors, place_chunk
+from gtgen.storage.schema import DRIVE, MAP_LAYERS
+
+log = logging.getLogger(__name__)
+
+Want = dict[str, dict[int, list[int]]]  # role -> {message ordinal: indices it fills}
+
+
+def create(root: Any, path: str, shape: tuple, chunks: tuple | None = None, flat: bool = False) -> Any:
+    """Create drive-store array ``path``; ``flat`` keys its chunks 'c.i.j...' (one folder)."""
+    sp = DRIVE.spec(path)
+    chunks = chunks or tuple(max(1, s) for s in shape)
+    keys = {"name": "default", "separator": "." if flat else "/"}
+    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value(), compressors=compressors(),
+                             chunk_key_encoding=keys)
+
+
+def write_small(root: Any, scan: Scan, track: PoseTrack, plan: Plan, extr: dict) -> None:
+    """Write the poses, GNSS fixes, candidates, per-sample rows and calibration."""
+    create(root, "poses/t_ns", track.t_ns.shape)[:] = track.t_ns
+    create(root, "poses/pos_odom_m", track.pos.shape)[:] = track.pos
+    create(root, "poses/quat_odom_xyzw", track.quat.shape)[:] = track.quat
+    g = sorted(scan.gnss, key=lambda x: x[0])
+    G = len(g)
+    cols = {
+        "gnss/t_ns": np.array([x[0] for x in g], np.int64).reshape(G),
+        "gnss/lat_deg": np.array([x[1] for x in g], np.float64).reshape(G),
+        "gnss/lon_deg": np.array([x[2] for x in g], np.float64).reshape(G),
+        "gnss/alt_m": np.array([x[3] for x in g], np.float64).reshape(G),
+        "gnss/var_enu_m2": np.array([x[4] for x in g], np.float64).reshape(G, 3),
+        "gnss/status": np.array([x[5] for x in g], np.int8).reshape(G),
+    }
+    for k, v in cols.items():
+        a = create(root, k, v.shape, chunks=tuple(max(1, s) for s in v.shape))
+        if v.size:
+            a[:] = v
+    create(root, "candidates/t_ns", plan.cand_t.shape)[:] = plan.cand_t
+    create(root, "candidates/reason", plan.cand_reason.shape)[:] = plan.cand_reason
+    S = len(plan.t)
+    pos, quat = track.interpolate(plan.t)
+    dist = np.interp(plan.t.astype(np.float64), track.t_ns.astype(np.float64), track.distance())
+    create(root, "samples/t_ns", (S,))[:] = plan.t
+    create(root, "samples/pos_odom_m", (S, 3))[:] = pos
+    create(root, "samples/quat_odom_xyzw", (S, 4))[:] = quat
+    create(root, "samples/distance_m", (S,))[:] = dist
+    for r in RANGES:
+        create(root, f"samples/map_index_{r}", (S,))[:] = plan.sample_map[r]
+    create(root, "samples/image_t_ns", (S, 4))[:] = plan.image_t
+    create(root, "samples/voxel_t_ns", (S,))[:] = plan.voxel_t
+    create(root, "samples/voxel_index", (S,))[:] = plan.voxel_index
+    create(root, "voxel_maps/t_ns", plan.voxel_map_t.shape)[:] = plan.voxel_map_t
+    create(root, "calib/K", (4, 3, 3))[:] = np.stack([extr[c][0] for c in CAMERAS])
+    create(root, "calib/T_base_cam", (4, 4, 4))[:] = np.stack([extr[c][1] for c in CAMERAS])
+
+
+def _wanted(plan: Plan) -> Want:
+    """Return which message ordinal of each large role fills which samples, maps, voxel maps."""
+    want: Want = defaultdict(lambda: defaultdict(list))
+    for c_i, c in enumerate(CAMERAS):
+        for s_i, o in enumerate(plan.image_ord[:, c_i]):
+            want[f"camera.{c}"][int(o)].append(s_i)
+    for v, o in enumerate(plan.voxel_ord):
+        want["voxel_map"][int(o)].append(v)
+    for r in RANGES:
+        for k_i, o in enumerate(plan.map_ord[r]):
+            want[f"map.{r}"][int(o)].append(k_i)
+    return want
+
+
+@dataclass
+class Slices:
+    """The read's slices: their record-time bounds, the first ordinal of each large role
+    in each, and what each staged."""
+
+    bounds: list[tuple[int | None, int | None]]
+    counts: list[dict[str, int]]
+    staged: list[Staged]
+
+    def __post_init__(self) -> None:
+        roles = [r for r in (self.counts[0] if self.counts else {}) if is_large(r)]
+        self.firsts: list[dict[str, int]] = []
+        first = dict.fromkeys(roles, 0)
+        for n in self.counts:
+            self.firsts.append(dict(first))
+            for role in roles:
+                first[role] += n[role]
+        self._starts = {role: np.array([f[role] for f in self.firsts], np.int64) for role in roles}
+
+    def locate(self, role: str, o: int) -> tuple[Staged | None, int]:
+        """Return (what the slice holding ordinal ``o`` staged, the ordinal within it)."""
+        k = int(np.searchsorted(self._starts[role], o, side="right")) - 1
+        return (self.staged[k] if self.staged else None), o - int(self._starts[role][k])
+
+
+class _Large:
+    """Fills the store's images, maps and voxel clouds (see ``write_large``)."""
+
+    def __init__(self, root: Any, tmp: Path, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices) -> None:
+        self.root, self.tmp, self.cfg, self.scan, self.plan, self.slices = root, tmp, cfg, scan, plan, slices
+        self.centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
+        self.yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
+        self.n_points = np.zeros(len(plan.voxel_ord), np.int64)
+        self.missing: Want = defaultdict(dict)
+        self.raw: list[tuple[int, Path, int]] = []  # (index, .npy, stamp) of voxel maps staged in base_link
+        self._made: set[Path] = set()
+        self._seps: dict[str, str] = {}
+
+    def create_arrays(self) -> None:
+        S, P = len(self.plan.t), self.cfg.shards.max_voxel_points
+        W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
+        create(self.root, "samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3), flat=True)
+        for r in RANGES:
+            shape, res = self.scan.map_shape[f"map.{r}"]
+            for name in MAP_LAYERS:
+                create(self.root, f"maps/{r}/{name}", (len(self.plan.map_t[r]),) + shape, chunks=(1,) + shape, flat=True)
+            self.root[f"maps/{r}"].attrs.update({"resolution_m": res, "shape": list(shape), "frame": self.cfg.topics.odom_frame})
+        V = len(self.plan.voxel_ord)
+        self.vox = create(self.root, "voxel_maps/points_odom_m", (V, P, 3), chunks=(1, P, 3), flat=True)
+
+    def _place(self, src: Path, dst_path: str, coords: list[tuple[int, ...]]) -> None:
+        if dst_path not in self._seps:
+            self._seps[dst_path] = check_encoded_chunks(self.root[dst_path])
+        for n, c in enumerate(coords):  # the last use takes the file, earlier ones link to it
+            place_chunk(src, chunk_file(self.tmp, dst_path, c, self._seps[dst_path]), move=n == len(coords) - 1, made=self._made)
+
+    def place_staged(self, want: Want) -> None:
+        """Move what the slices staged into place; note in ``missing`` what they did not."""
+        for c_i, c in enumerate(CAMERAS):
+            role = f"camera.{c}"
+            for o, targets in want[role].items():
+                stg, i = self.slices.locate(role, o)
+                if stg is None or i not in stg.ordinals[role]:
+                    self.missing[role][o] = targets
+                    continue
+                self._place(stg.chunk(role, i), "samples/images", [(s_i, c_i, 0, 0, 0) for s_i in targets])
+        for r in RANGES:
+            self._place_maps(r, want[f"map.{r}"])
+        for o, targets in want["voxel_map"].items():
+            stg, i = self.slices.locate("voxel_map", o)
+            got = stg.voxels.get(i) if stg else None
+            if got is None:
+                self.missing["voxel_map"][o] = targets
+            elif got[0] < 0:
+                self.raw += [(v, stg.raw_voxels(i), got[1]) for v in targets]
+            else:
+                self._place(stg.chunk("voxel_map", i), "voxel_maps/points_odom_m", [(v, 0, 0) for v in targets])
+                self.n_points[targets] = got[0]
+
+    def _place_maps(self, r: str, want: dict[int, list[int]]) -> None:
+        role = f"map.{r}"
+        for o, targets in want.items():
+            stg, i = self.slices.locate(role, o)
+            if stg is None or i not in stg.ordinals[role] or stg.map_shape.get(role) != self.scan.map_shape[role][0]:
+                self.missing[role][o] = targets
+                continue
+            for name in MAP_LAYERS:
+                self._place(stg.chunk(role, i, name), f"maps/{r}/{name}", [(k_i, 0, 0) for k_i in targets])
+            center, yaw = map_to_odom(self.cfg, self.scan.static, *stg.map_pose[(role, i)])
+            self.centers[r][targets] = center
+            self.yaws[r][targets] = yaw
+
+    def read_missing(self, pool: Pool, paths: list[Path], roles: dict[str, str], track: PoseTrack) -> int:
+        """Read what no slice staged in a targeted pass, and the raw base-frame voxel maps;
+        return how many kept messages that pass read."""
+        big = {t: r for t, r in roles.items() if is_large(r)}
+        P = self.cfg.shards.max_voxel_points
+        work = []
+        for k, ((a, b), n) in enumerate(zip(self.slices.bounds, self.slices.counts)):
+            first = self.slices.firsts[k]
+            part = {role: {o: t for o, t in self.missing[role].items() if first[role] <= o < first[role] + n[role]}
+                    for role in big.values()}
+            if any(part.values()):
+                work.append((paths, self.cfg, big, str(self.tmp), a, b, first, part, self.scan.static, track))
+        seen = 0
+        with BackgroundWrites() as writes:
+            for got in pool.map(read_slice, work, "extract: reading what no slice staged") if work else ():
+                seen += got.selected
+                for (r, k_i), (c, y) in got.maps.items():
+                    self.centers[r][k_i] = c
+                    self.yaws[r][k_i] = y
+                for v, pts in got.voxels.items():
+                    self.n_points[v] = len(pts)
+                    writes.submit(self.vox.__setitem__, v, padded(pts, P))
+            for v, f, t in self.raw:
+                pts = nearest_points(base_to_odom(np.load(f), t, track), P)
+                self.n_points[v] = len(pts)
+                writes.submit(self.vox.__setitem__, v, padded(pts, P))
+        n_missing = sum(len(v) for v in self.missing.values())
+        log.debug("extract: %d kept messages not staged: %s", n_missing, {r: len(v) for r, v in self.missing.items() if v})
+        if seen != n_missing:
+            raise BagError(f"bags ended before every selected message was read ({seen} of {n_missing} messages)")
+        return n_missing
+
+    def finish(self) -> None:
+        create(self.root, "voxel_maps/n_points", (len(self.n_points),))[:] = self.n_points
+        for r in RANGES:
+            create(self.root, f"maps/{r}/t_ns", self.plan.map_t[r].shape)[:] = self.plan.map_t[r]
+            create(self.root, f"maps/{r}/center_odom_m", self.centers[r].shape)[:] = self.centers[r]
+            create(self.root, f"maps/{r}/yaw_odom_rad", self.yaws[r].shape)[:] = self.yaws[r]
+        shutil.rmtree(self.tmp / STAGE, ignore_errors=True)
+
+
+def write_large(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
+                track: PoseTrack, plan: Plan, slices: Slices, pool: Pool) -> int:
+    """Put the plan's images, maps and voxel clouds in the store; return how many kept
+    messages no slice had staged (read in a second pass)."""
+    large = _Large(root, tmp, cfg, scan, plan, slices)
+    large.create_arrays()
+    large.place_staged(_wanted(plan))
+    reread = large.read_missing(pool, paths, roles, track)
+    large.finish()
+    return reread
+
+
+@dataclass
+class SliceOut:
+    """What a targeted pass over one slice read: map poses and voxel points."""
+
+    selected: int
+    maps: dict[tuple[str, int], tuple[NDArray, float]]
+    voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
+
+
+def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
+               first: dict[str, int], want: Want, static: dict, track: PoseTrack) -> SliceOut:
+    """The targeted second pass over [start, stop) (a process-pool job): decode the kept
+    messages in ``want``, write images and maps into their chunks; return map poses and
+    voxel points."""
+    import zarr
+
+    tp = cfg.topics
+    W, H = cfg.extract.image_width, cfg.extract.image_height
+    layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
+    root = zarr.open_group(store, mode="r+")
+    images = root["samples/images"]
+    maps = {r: {name: root[f"maps/{r}/{name}"] for name in MAP_LAYERS} for r in RANGES}
+    out = SliceOut(0, {}, {})
+    if not any(want.values()):
+        return out
+    ordinal = dict(first)
+    with BagSet(paths) as bags, BackgroundWrites() as writes, Runs(writes.submit) as runs:
+        for topic, msgtype, _, msg, err in bags.messages(list(roles), start, stop):
+            role = roles[topic]
+            o = ordinal[role]
+            ordinal[role] += 1
+            targets = want[role].get(o)
+            if not targets:
+                continue
+            out.selected += 1
+            if msg is None:
+                raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
+            if role.startswith("camera."):
+                c_i = CAMERAS.index(role.split(".")[1])
+                img = resize_image(decode_image(msg, msgtype), W, H)
+                for s_i in targets:
+                    runs.put(images, s_i, img, (c_i,))
+            elif role == "voxel_map":
+                pts = voxel_points(msg, cfg, track)
+                for v in targets:
+                    out.voxels[v] = pts
+            else:
+                r = role.split(".")[1]
+                g = decode_gridmap(msg, list(layer_names))
+                arr = maps[r]
+                if g.shape != tuple(arr["elevation_m"].shape[1:]):
+                    raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
+                center, yaw = map_to_odom(cfg, static, g.center_m, g.yaw_rad, g.frame_id)
+                for k_i in targets:
+                    for name, layer in zip(MAP_LAYERS, layer_names):
+                        runs.put(arr[name], k_i, g.layers[layer])
+                    out.maps[(r, k_i)] = (center, yaw)
+    return out

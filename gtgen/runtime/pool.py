@@ -1,0 +1,128 @@
+"""The one process pool of gtgen (extract, fuse, dem-align and the build run on it), and
+bounded background threads for I/O.
+
+Workers are spawned, never forked: the parent may hold open stores, threads and
+open3d's thread pool. Each spawned worker gets one OpenMP / BLAS thread (unless the
+user set those variables): the pool already keeps every core busy, and nested threads
+only contend.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from typing import Any
+
+from gtgen.runtime.progress import track
+
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+class Pool:
+    """Runs jobs (picklable functions and arguments) on ``workers`` spawned processes;
+    with one worker, in this process. The pool lives until ``close``, so several rounds
+    of jobs pay for worker start-up once.
+
+    ``warm``, a picklable function, is run once per worker at once (it imports what the
+    jobs need), so that start-up overlaps with what the caller does before the first jobs.
+    """
+
+    def __init__(self, workers: int, warm: Callable[[], Any] | None = None) -> None:
+        self.workers = max(1, int(workers))
+        self._ex = None
+        self._env: dict[str, str | None] = {}
+        if self.workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            # workers spawn on demand: the variables stay set while the pool lives
+            self._env = {k: os.environ.get(k) for k in THREAD_VARS}
+            for k in THREAD_VARS:
+                os.environ.setdefault(k, "1")
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"))
+            if warm is not None:
+                for _ in range(self.workers):
+                    self._ex.submit(warm)
+
+    @property
+    def parallel(self) -> bool:
+        """Whether jobs run in other processes."""
+        return self._ex is not None
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """Return the future of ``fn(*args)``; run at once here when the pool has one worker."""
+        if self._ex is not None:
+            return self._ex.submit(fn, *args)
+        fut: Future = Future()
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as err:  # noqa: BLE001 - handed to the caller through the future
+            fut.set_exception(err)
+        return fut
+
+    def map(self, fn: Callable[..., Any], jobs: list[tuple], label: str | None = None) -> Iterator:
+        """Yield ``fn(*job)`` for each job in order; a progress bar over jobs if ``label``
+        (leave it out when the jobs show their own)."""
+        results = (fn(*j) for j in jobs) if self._ex is None else self._ex.map(fn, *zip(*jobs)) if jobs else iter(())
+        return results if label is None else track(results, label, total=len(jobs))
+
+    def as_completed(self, fn: Callable[..., Any], jobs: list[tuple], label: str | None = None) -> Iterator:
+        """Yield ``fn(*job)`` of every job as each finishes (in order with one worker)."""
+        if self._ex is None:
+            results: Iterator = (fn(*j) for j in jobs)
+        else:
+            from concurrent.futures import as_completed
+
+            futs = [self._ex.submit(fn, *j) for j in jobs]
+            results = (f.result() for f in as_completed(futs))
+        return results if label is None else track(results, label, total=len(jobs))
+
+    def close(self) -> None:
+        """Stop the workers (waiting for running jobs, cancelling queued ones)."""
+        if self._ex is not None:
+            self._ex.shutdown(wait=True, cancel_futures=True)
+            self._ex = None
+            for k, v in self._env.items():
+                if v is None:
+                    os.environ.pop(k, None)
+
+    def __enter__(self) -> Pool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class BackgroundWrites:
+    """Calls on two background threads (compression and file I/O release the GIL), so that
+    encoding overlaps with reading; at most a few calls are in flight, which bounds memory.
+    The first error is raised on the next ``submit`` or on exit."""
+
+    def __init__(self, threads: int = 2, in_flight: int = 8) -> None:
+        self.threads, self.in_flight = threads, in_flight
+
+    def __enter__(self) -> BackgroundWrites:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pool = ThreadPoolExecutor(max_workers=self.threads)
+        self.pending: list[Future] = []
+        return self
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn(*args)`` on a thread."""
+        self.pending.append(self.pool.submit(fn, *args))
+        while len(self.pending) > self.in_flight:
+            self.pending.pop(0).result()
+
+    def drain(self) -> None:
+        """Wait for every call submitted so far."""
+        while self.pending:
+            self.pending.pop(0).result()
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if exc[0] is None:
+                self.drain()
+        finally:
+            self.pool.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,194 @@
+"""Every on-disk format gtgen writes, defined once: store kinds, versions, arrays.
+
+A store is a Zarr v3 group whose attributes say its ``store`` kind, its version and
+``complete`` (true only once written whole). Its arrays are lists of :class:`ArraySpec`
+(name, dtype, shape symbols, units, frame, fill, meaning); ``data_schema.md`` mirrors
+these lists and ``tests/test_schema_doc.py`` checks that they agree. Shape symbols: N
+poses, G fixes, M_r kept maps of range r, C candidates, S samples, V voxel maps, R
+rejected samples, n_m / n_s micro / short cells per side, H x W the stored image size,
+P voxel points. The target frame of a sample is vehicle-centric and gravity-aligned at
+its time t (see data_schema.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from gtgen import codes
+from gtgen.config import RANGES
+from gtgen.storage.specs import ArraySpec, find
+
+
+@dataclass(frozen=True)
+class StoreFormat:
+    """One kind of store: its ``store`` attribute, version, arrays, and the command that makes it."""
+
+    kind: str
+    version: int
+    arrays: tuple[ArraySpec, ...]
+    made_by: str
+
+    def spec(self, path: str) -> ArraySpec:
+        """Return the spec of array ``path``."""
+        return find(list(self.arrays), path)
+
+
+# -- the drive store (``gtgen extract``) ---------------------------------------------------
+MAP_LAYERS = ("elevation_m", "risk", "confidence")  # the grids of each kept map, in GridMap layer order (topics.layers)
+
+_MAPS: list[ArraySpec] = []
+for _r in RANGES:
+    _MAPS += [
+        ArraySpec(f"maps/{_r}/t_ns", "int64", "(M_r,)", "ns", "-", "-", f"header stamp of each kept {_r} GridMap"),
+        ArraySpec(f"maps/{_r}/elevation_m", "float32", "(M_r, nx, ny)", "m", "map grid in odom", "NaN", "X-Racer elevation; axis 0 = map x from -L/2"),
+        ArraySpec(f"maps/{_r}/risk", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer traversability risk"),
+        ArraySpec(f"maps/{_r}/confidence", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer confidence"),
+        ArraySpec(f"maps/{_r}/center_odom_m", "float64", "(M_r, 3)", "m", "odom", "-", "grid centre (GridMap info.pose position)"),
+        ArraySpec(f"maps/{_r}/yaw_odom_rad", "float64", "(M_r,)", "rad", "odom", "-", "grid yaw (GridMap info.pose orientation)"),
+    ]
+
+_DRIVE: list[ArraySpec] = [
+    ArraySpec("poses/t_ns", "int64", "(N,)", "ns", "-", "-", "odometry stamps, sorted, unique"),
+    ArraySpec("poses/pos_odom_m", "float64", "(N, 3)", "m", "odom", "-", "base position T_odom_base"),
+    ArraySpec("poses/quat_odom_xyzw", "float64", "(N, 4)", "-", "odom", "-", "base orientation T_odom_base"),
+    ArraySpec("gnss/t_ns", "int64", "(G,)", "ns", "-", "-", "NavSatFix stamps"),
+    ArraySpec("gnss/lat_deg", "float64", "(G,)", "deg", "WGS84", "-", "latitude"),
+    ArraySpec("gnss/lon_deg", "float64", "(G,)", "deg", "WGS84", "-", "longitude"),
+    ArraySpec("gnss/alt_m", "float64", "(G,)", "m", "WGS84 ellipsoid", "-", "ellipsoidal altitude"),
+    ArraySpec("gnss/var_enu_m2", "float64", "(G, 3)", "m^2", "ENU", "-", "diagonal of position_covariance (NaN if unknown)"),
+    ArraySpec("gnss/status", "int8", "(G,)", "-", "-", "-", "NavSatStatus.status (-1 no fix)"),
+    *_MAPS,
+    ArraySpec("candidates/t_ns", "int64", "(C,)", "ns", "-", "-", "candidate sample times (every stride_m of travel)"),
+    ArraySpec("candidates/reason", "uint8", "(C,)", "code", "-", "-", "0 = kept, else the rejection reason (gtgen.codes)"),
+    ArraySpec("samples/t_ns", "int64", "(S,)", "ns", "-", "-", "sample time (front camera stamp)"),
+    ArraySpec("samples/pos_odom_m", "float64", "(S, 3)", "m", "odom", "-", "base position at t (interpolated)"),
+    ArraySpec("samples/quat_odom_xyzw", "float64", "(S, 4)", "-", "odom", "-", "base orientation at t (SLERP)"),
+    ArraySpec("samples/distance_m", "float64", "(S,)", "m", "-", "-", "odometry travel since the drive start"),
+    ArraySpec("samples/map_index_micro", "int64", "(S,)", "-", "-", "-", "index into maps/micro of the X-Racer map at t"),
+    ArraySpec("samples/map_index_short", "int64", "(S,)", "-", "-", "-", "index into maps/short of the X-Racer map at t"),
+    ArraySpec("samples/images", "uint8", "(S, 4, H, W, 3)", "RGB", "camera", "-", "front, left, right, back; resized to extract.image_*"),
+    ArraySpec("samples/image_t_ns", "int64", "(S, 4)", "ns", "-", "-", "stamp of each image"),
+    ArraySpec("samples/voxel_t_ns", "int64", "(S,)", "ns", "-", "-", "stamp of the voxel map used"),
+    ArraySpec("samples/voxel_index", "int64", "(S,)", "-", "-", "-", "index into voxel_maps of the voxel map used"),
+    ArraySpec("voxel_maps/t_ns", "int64", "(V,)", "ns", "-", "-", "stamps of the voxel maps some sample uses"),
+    ArraySpec("voxel_maps/n_points", "int64", "(V,)", "-", "-", "-", "points of each voxel map (at most shards.max_voxel_points)"),
+    ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
+    ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
+    ArraySpec("calib/T_base_cam", "float64", "(4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics from tf_static"),
+]
+
+DRIVE = StoreFormat("gtgen-drive", 2, tuple(_DRIVE), "gtgen extract BAG")
+
+
+# -- the fused store (``gtgen fuse``) ------------------------------------------------------
+_FUSED: list[ArraySpec] = [
+    ArraySpec("samples/reason", "uint8", "(S,)", "code", "-", "-", "0 = fused, else why not (gtgen.codes)"),
+]
+for _r in RANGES:
+    _f = "vehicle frame at t"
+    _FUSED += [
+        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "mean elevation of confident observations in the window"),
+        ArraySpec(f"fused/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "max confidence in the window"),
+        ArraySpec(f"fused/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "latest risk with confidence >= risk_min_conf"),
+        ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation"),
+        ArraySpec(f"fused/{_r}/last_dt_s", "float32", "(S, n, n)", "s, rel. t", _f, "NaN", "stamp of the last observation minus t"),
+        ArraySpec(f"fused/{_r}/region", "uint8", "(S, n, n)", "code", _f, "0", "1 observed past/current, 2 observed future, 3 unobserved"),
+        ArraySpec(f"xracer/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "X-Racer map at t (latest stamped <= t), resampled"),
+        ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t"),
+        ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t"),
+    ]
+FUSED = StoreFormat("gtgen-fused", 1, tuple(_FUSED), "gtgen fuse")
+
+
+# -- the dataset (``gtgen dem-align``, ``gtgen build``) ---------------------------------
+SAMPLES_PER_SHARD = 16
+POINTS_PER_CHUNK = 1 << 17
+
+_TGT = "target (vehicle, gravity-aligned, at t)"
+
+_DATASET: list[ArraySpec] = []
+for _r in RANGES:
+    _n = "n_m" if _r == "micro" else "n_s"
+    _DATASET += [
+        ArraySpec(f"labels/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "fused elevation (regions 1, 2), aligned DEM (region 3)"),
+        ArraySpec(f"labels/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "latest confident X-Racer risk in the window"),
+        ArraySpec(f"labels/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "max X-Racer confidence in the window"),
+        ArraySpec(f"labels/{_r}/region", "uint8", f"(S, {_n}, {_n})", "code", _TGT, "0", "0 no label, 1 observed past/current, 2 observed future, 3 unobserved (DEM)"),
+        ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation"),
+        ArraySpec(f"labels/{_r}/last_dt_s", "float32", f"(S, {_n}, {_n})", "s, rel. t", _TGT, "NaN", "time of the last observation minus t"),
+        ArraySpec(f"xracer/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "X-Racer map at t (the baseline row)"),
+        ArraySpec(f"xracer/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer risk at t"),
+        ArraySpec(f"xracer/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer confidence at t"),
+        ArraySpec(f"dem/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "aligned DEM, bilinear"),
+    ]
+_DATASET += [
+    ArraySpec("inputs/images", "uint8", "(S, 4, H, W, 3)", "RGB", "camera", "0", "front, left, right, back"),
+    ArraySpec("inputs/K", "float64", "(S, 4, 3, 3)", "px", "camera", "0", "intrinsics for the stored image size"),
+    ArraySpec("inputs/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base <- camera optical", "0", "camera extrinsics"),
+    ArraySpec("inputs/T_target_base", "float64", "(S, 4, 4)", "m", "target <- base", "0", "the base's roll and pitch in the target frame"),
+    ArraySpec("inputs/raw_elevation_m", "float32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell"),
+    ArraySpec("inputs/voxel_offsets", "int64", "(S + 1,)", "-", "-", "0", "sample s owns voxel_points_m[offsets[s]:offsets[s+1]]"),
+    ArraySpec("inputs/voxel_points_m", "float32", "(P, 3)", "m", _TGT, "0", "voxel map points, flat"),
+    ArraySpec("meta/t_ns", "int64", "(S,)", "ns", "-", "0", "sample time"),
+    ArraySpec("meta/drive", "uint16", "(S,)", "-", "-", "0", "index into the attribute 'drives'"),
+    ArraySpec("meta/pos_odom_m", "float64", "(S, 3)", "m", "odom", "0", "base position at t"),
+    ArraySpec("meta/yaw_odom_rad", "float64", "(S,)", "rad", "odom", "0", "base yaw at t"),
+    ArraySpec("meta/crs_en_m", "float64", "(S, 2)", "m", "DEM CRS", "0", "sample position (easting, northing) after ICP"),
+    ArraySpec("meta/T_crs_target", "float64", "(S, 4, 4)", "m", "DEM CRS <- target", "0", "alignment after ICP (z: DEM heights)"),
+    ArraySpec("meta/icp_fitness", "float32", "(S,)", "0..1", "-", "0", "share of source cells within dem.icp_max_distance_m"),
+    ArraySpec("meta/icp_rmse_m", "float32", "(S,)", "m", "-", "0", "point-to-plane RMSE of the inliers"),
+    ArraySpec("meta/icp_correction", "float32", "(S, 4)", "m, m, m, rad", _TGT, "0", "ICP correction dx, dy, dz, dyaw over the prior placement"),
+    ArraySpec("meta/split", "uint8", "(S,)", "code", "-", "0", "0 train, 1 val (by geography block)"),
+    ArraySpec("rejected/t_ns", "int64", "(R,)", "ns", "-", "0", "time of each rejected sample"),
+    ArraySpec("rejected/drive", "uint16", "(R,)", "-", "-", "0", "drive of each rejected sample"),
+    ArraySpec("rejected/reason", "uint8", "(R,)", "code", "-", "0", "why (gtgen.codes)"),
+    ArraySpec("rejected/icp_fitness", "float32", "(R,)", "0..1", "-", "NaN", "ICP fitness if ICP ran"),
+    ArraySpec("rejected/icp_rmse_m", "float32", "(R,)", "m", "-", "NaN", "ICP RMSE if ICP ran"),
+]
+DATASET = StoreFormat("gtgen-dataset", 2, tuple(_DATASET), "gtgen dem-align")
+
+# the arrays with one row per sample (sharded along the sample axis)
+SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in DATASET.arrays if not s.path.startswith(("rejected/", "inputs/voxel_")))
+
+FORMATS = {f.kind: f for f in (DRIVE, FUSED, DATASET)}
+
+
+class BagRef(BaseModel):
+    """A bag a drive was read from, and its sha256."""
+
+    model_config = ConfigDict(extra="forbid")
+    path: str
+    sha256: str
+
+
+class DriveEntry(BaseModel):
+    """One drive of a dataset: where it came from and how it was placed in the DEM's CRS."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(description="drive name (the build's unit; the drive store's folder for dem-align)")
+    drive_store: str = Field(description="the drive store the samples were built from")
+    bags: list[BagRef]
+    crs: str = Field(description="working CRS of the drive's DEM placement (meta/T_crs_target, meta/crs_en_m)")
+    alignment: dict[str, float | int] = Field(description="GNSS fit and vertical offset of the drive")
+
+
+class DatasetAttrs(BaseModel):
+    """The attributes of a dataset store: written by ``gtgen dem-align`` and ``gtgen build``
+    through this one model."""
+
+    model_config = ConfigDict(extra="forbid")
+    store: str = DATASET.kind
+    version: int = DATASET.version
+    complete: bool = True
+    gtgen_version: str
+    config: dict[str, Any] = Field(description="the resolved config the dataset was built with")
+    drives: list[DriveEntry] = Field(description="meta/drive indexes this list")
+    reasons: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.REASONS.items()})
+    regions: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.REGIONS.items()})
+    splits: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.SPLITS.items()})
+    image_size: tuple[int, int] = Field(description="stored image width, height [px]")
+    cameras: list[str]
+    provenance: dict[str, Any] | None = Field(None, description="dependency versions and per-drive timings (gtgen build)")
