@@ -93,31 +93,7 @@ def _truth_errors(g, cfg: GtgenConfig, truth, idx: np.ndarray) -> dict:
             lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
         v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
         for r in RANGES:
-            gr = cfg.grids.get(r)
-            X, Y = grid_xy(gr.size, gr.resolution_m)
-            te, trisk = truth.labels(T_odom_target, X, Y, int(t[k]))
-            el = g[f"labels/{r}/elevation_m"][k]
-            reg = g[f"labels/{r}/region"][k]
-            rk = g[f"labels/{r}/risk"][k]
-            xe = g[f"xracer/{r}/elevation_m"][k]
-            xc = g[f"xracer/{r}/confidence"][k]
-            for code, name in REGIONS.items():
-                m = (reg == code) & np.isfinite(el)
-                a = acc[r][name]
-                a["elev_abs"] += float(np.abs(el[m] - te[m]).sum())
-                a["n"] += int(m.sum())
-                mr = (reg == code) & np.isfinite(rk)
-                a["risk_sq"] += float(((rk[mr] - trisk[mr]) ** 2).sum())
-                a["nr"] += int(mr.sum())
-                mx = (reg == code) & np.isfinite(xe)
-                a["xr_abs"] += float(np.abs(xe[mx] - te[mx]).sum())
-                a["nx"] += int(mx.sum())
-            # averaging works: fused vs the single X-Racer map at t on cells both call confident
-            both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
-            fs = fused_vs_single[r]
-            fs["fused_abs"] += float(np.abs(el[both] - te[both]).sum())
-            fs["single_abs"] += float(np.abs(xe[both] - te[both]).sum())
-            fs["n"] += int(both.sum())
+            _add_sample_errors(g, cfg, truth, k, r, T_odom_target, acc[r], fused_vs_single[r])
     out: dict = {"samples_evaluated": int(len(idx))}
     for r in RANGES:
         out[r] = {}
@@ -140,6 +116,34 @@ def _truth_errors(g, cfg: GtgenConfig, truth, idx: np.ndarray) -> dict:
         "vertical_m": _quantiles(np.abs(np.asarray(v_err))),
     }
     return out
+
+
+def _add_sample_errors(g, cfg: GtgenConfig, truth, k: int, r: str, T_odom_target: np.ndarray, acc: dict, fs: dict) -> None:
+    """Accumulate sample ``k``'s label, risk and X-Racer errors of range ``r`` per region."""
+    gr = cfg.grids.get(r)
+    X, Y = grid_xy(gr.size, gr.resolution_m)
+    te, trisk = truth.labels(T_odom_target, X, Y, int(g["meta/t_ns"][k]))
+    el = g[f"labels/{r}/elevation_m"][k]
+    reg = g[f"labels/{r}/region"][k]
+    rk = g[f"labels/{r}/risk"][k]
+    xe = g[f"xracer/{r}/elevation_m"][k]
+    xc = g[f"xracer/{r}/confidence"][k]
+    for code, name in REGIONS.items():
+        m = (reg == code) & np.isfinite(el)
+        a = acc[name]
+        a["elev_abs"] += float(np.abs(el[m] - te[m]).sum())
+        a["n"] += int(m.sum())
+        mr = (reg == code) & np.isfinite(rk)
+        a["risk_sq"] += float(((rk[mr] - trisk[mr]) ** 2).sum())
+        a["nr"] += int(mr.sum())
+        mx = (reg == code) & np.isfinite(xe)
+        a["xr_abs"] += float(np.abs(xe[mx] - te[mx]).sum())
+        a["nx"] += int(mx.sum())
+    # averaging works: fused vs the single X-Racer map at t on cells both call confident
+    both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
+    fs["fused_abs"] += float(np.abs(el[both] - te[both]).sum())
+    fs["single_abs"] += float(np.abs(xe[both] - te[both]).sum())
+    fs["n"] += int(both.sum())
 
 
 def _figures(g, rep: Report, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from conftest import run_cli
 
 
@@ -46,3 +48,11 @@ def test_dem_align_report_viz_through_the_cli(dataset, drive_store, tmp_path):
     assert p.returncode == 1 and "out of range" in p.stderr
     p = run_cli("dem-align", ws / "drive.zarr", "--dem", tmp_path / "nope", "-o", tmp_path / "x.zarr")
     assert p.returncode == 1 and "DEM folder" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.parametrize("args", [(), ("extract",), ("--bogus",), ("fuse", "--window", "abc"), ("nosuchcmd",)])
+def test_usage_errors_print_usage_and_exit_2(args, tmp_path):
+    p = run_cli(*args, cwd=tmp_path, timeout=60)
+    assert p.returncode == 2, (args, p.returncode, p.stderr)
+    assert "Traceback" not in p.stderr + p.stdout
+    assert "Usage: gtgen " in " ".join((p.stderr + p.stdout).split())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import zarr
@@ -326,3 +328,33 @@ def test_voxel_maps_in_base_link_are_placed_by_the_pose_track(drive_dir, drive_s
     a, b = open_drive(staged), g
     np.testing.assert_array_equal(a["voxel_maps/n_points"][:], b["voxel_maps/n_points"][:])
     np.testing.assert_allclose(a["voxel_maps/points_odom_m"][:], b["voxel_maps/points_odom_m"][:], atol=2e-3)
+
+
+@pytest.mark.parametrize("name", ["drive.mcap", "drive.bag"])
+def test_truncated_bag_at_seeded_offsets_never_a_traceback_or_a_hang(drive_dir, tmp_path, cfg, name):
+    """A bag cut anywhere (10 seeded offsets per flavour) gives a store with its per-topic
+    report or a one-line gtgen error; a watchdog turns a hang into a failure."""
+    import signal
+
+    data = (drive_dir / name).read_bytes()
+    offsets = np.sort(np.random.default_rng(20).integers(1, len(data), 10))
+
+    def hang(*_):
+        raise TimeoutError("extract hung on a truncated bag")
+
+    old = signal.signal(signal.SIGALRM, hang)
+    try:
+        for i, cut in enumerate(offsets):
+            bag = tmp_path / f"cut_{i}{Path(name).suffix}"
+            bag.write_bytes(data[:cut])
+            signal.alarm(120)
+            try:
+                res = run_extract([bag], tmp_path / f"d{i}.zarr", cfg, workers=1)
+                assert res.n_samples > 0 and all("decode_failures" in t for t in res.topics)
+            except GtgenError as err:
+                assert "\n" not in str(err) and str(err), (cut, err)
+            finally:
+                signal.alarm(0)
+            bag.unlink()
+    finally:
+        signal.signal(signal.SIGALRM, old)

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from gtgen import __version__, codes
 from gtgen.config import GtgenConfig, save_config

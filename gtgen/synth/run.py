@@ -219,74 +219,93 @@ class _Ticker:
 
     def tick(self, k: int) -> list:
         """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
-        cfg, sc, tp, world = self.cfg, self.cfg.synth, self.cfg.topics, self.world
-        odom, poses = world.odom, world.poses
         out: list = []
-        t = int(world.t_ns[k])
+        self._odometry(out, k)
+        if k % self.gnss_p == 0:
+            self._gnss(out, k)
+        view = self._view(k) if (k % self.map_p == 0 or k % self.vox_p == 0) else None
+        if k % self.map_p == 0:
+            self._maps(out, k, view)
+        if k % self.vox_p == 0:
+            self._voxel_map(out, k, view)
+        if k % self.cam_p == 0:
+            self._cameras(out, k)
+        return out
+
+    def _odometry(self, out: list, k: int) -> None:
+        tp, odom = self.cfg.topics, self.world.odom
+        t = int(self.world.t_ns[k])
         p_o, q_o = odom.p_odom[k], self.q_odom[k]
         v_body = quat_to_matrix(q_o).T @ self.vel_odom[k]
         w_body = np.array([0.0, 0.0, self.yaw_rate[k]])
         self._msg(out, tp.odometry, "nav_msgs/msg/Odometry", t, lambda f: f.odometry(t, tp.odom_frame, tp.base_frame, p_o, q_o, v_body, w_body, k))
         self._msg(out, tp.tf, "tf2_msgs/msg/TFMessage", t, lambda f: f.tf_message([f.transform_stamped(t, tp.odom_frame, tp.base_frame, p_o, q_o)]))
 
-        if k % self.gnss_p == 0:
-            g = k // self.gnss_p
-            e = self.gnss_err[g].copy()
-            rng = np.random.default_rng([sc.seed, 12, g])
-            if rng.random() < 0.01:  # occasional multipath outlier
-                e[:2] += rng.normal(0, 12.0, 2)
-            E, N = world.utm(poses.pos[k, :2]) + e[:2]
-            lon, lat = self.to_wgs84.transform(E, N)
-            alt = poses.pos[k, 2] + sc.geoid_offset_m + e[2]
-            s2 = self.gnss_sigma**2
-            cov = np.array([s2, s2, 2.25 * s2])
-            self._msg(out, tp.gnss, "sensor_msgs/msg/NavSatFix", t, lambda f: f.navsatfix(t, GNSS_FRAME, lat, lon, alt, cov, 0, g))
+    def _gnss(self, out: list, k: int) -> None:
+        sc, tp, world = self.cfg.synth, self.cfg.topics, self.world
+        t = int(world.t_ns[k])
+        g = k // self.gnss_p
+        e = self.gnss_err[g].copy()
+        rng = np.random.default_rng([sc.seed, 12, g])
+        if rng.random() < 0.01:  # occasional multipath outlier
+            e[:2] += rng.normal(0, 12.0, 2)
+        E, N = world.utm(world.poses.pos[k, :2]) + e[:2]
+        lon, lat = self.to_wgs84.transform(E, N)
+        alt = world.poses.pos[k, 2] + sc.geoid_offset_m + e[2]
+        s2 = self.gnss_sigma**2
+        cov = np.array([s2, s2, 2.25 * s2])
+        self._msg(out, tp.gnss, "sensor_msgs/msg/NavSatFix", t, lambda f: f.navsatfix(t, GNSS_FRAME, lat, lon, alt, cov, 0, g))
 
-        view = self._view(k) if (k % self.map_p == 0 or k % self.vox_p == 0) else None
-        if k % self.map_p == 0:
-            m = k // self.map_p
-            z_off = float(odom.p_odom[k, 2] - poses.pos[k, 2])
-            rng = np.random.default_rng([sc.seed, 10, k])
-            names = tp.layers
-            for rng_name in ("micro", "short"):
-                grid = cfg.grids.get(rng_name)
-                center = np.round(p_o[:2] / grid.resolution_m) * grid.resolution_m
-                cells = sensors.map_cells_world(grid, center, odom, k)
-                layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng)
-                start = (0, 0)
-                if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:
-                    start = tuple(int(x) for x in rng.integers(1, grid.size, 2))
-                named = {names.elevation: layers.elevation, names.risk: layers.risk, names.confidence: layers.confidence}
-                self._msg(
-                    out, tp.map_topic(rng_name), "grid_map_msgs/msg/GridMap", t + MAP_LATENCY_NS,
-                    lambda f: f.gridmap(t, tp.odom_frame, grid.resolution_m, center, named, start, m),
-                )
+    def _maps(self, out: list, k: int, view: sensors.LidarView) -> None:
+        cfg, sc, tp, world = self.cfg, self.cfg.synth, self.cfg.topics, self.world
+        odom = world.odom
+        t = int(world.t_ns[k])
+        m = k // self.map_p
+        z_off = float(odom.p_odom[k, 2] - world.poses.pos[k, 2])
+        rng = np.random.default_rng([sc.seed, 10, k])
+        names = tp.layers
+        for rng_name in ("micro", "short"):
+            grid = cfg.grids.get(rng_name)
+            center = np.round(odom.p_odom[k, :2] / grid.resolution_m) * grid.resolution_m
+            cells = sensors.map_cells_world(grid, center, odom, k)
+            layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng)
+            start = (0, 0)
+            if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:
+                start = tuple(int(x) for x in rng.integers(1, grid.size, 2))
+            named = {names.elevation: layers.elevation, names.risk: layers.risk, names.confidence: layers.confidence}
+            self._msg(
+                out, tp.map_topic(rng_name), "grid_map_msgs/msg/GridMap", t + MAP_LATENCY_NS,
+                lambda f: f.gridmap(t, tp.odom_frame, grid.resolution_m, center, named, start, m),
+            )
 
-        if k % self.vox_p == 0:
-            # the voxel map aggregates the last two lidar sweeps it was given, in odom
-            pts = [odom.world_to_odom(k, sensors.view_points(view))]
-            if k >= self.vox_p:
-                kp = k - self.vox_p
-                pts.append(odom.world_to_odom(kp, sensors.view_points(self._view(kp))))
-            allp = np.vstack(pts)
-            inside = np.all(np.abs(allp[:, :2] - p_o[:2]) < VOXEL_HALF_M, axis=1)
-            vx = sensors.voxelize(allp[inside], VOXEL_M)
-            self._msg(out, tp.voxel_map, "sensor_msgs/msg/PointCloud2", t, lambda f: f.pointcloud_xyz(t, tp.odom_frame, vx, k // self.vox_p))
+    def _voxel_map(self, out: list, k: int, view: sensors.LidarView) -> None:
+        """The voxel map aggregates the last two lidar sweeps it was given, in odom."""
+        tp, odom = self.cfg.topics, self.world.odom
+        t = int(self.world.t_ns[k])
+        pts = [odom.world_to_odom(k, sensors.view_points(view))]
+        if k >= self.vox_p:
+            kp = k - self.vox_p
+            pts.append(odom.world_to_odom(kp, sensors.view_points(self._view(kp))))
+        allp = np.vstack(pts)
+        inside = np.all(np.abs(allp[:, :2] - odom.p_odom[k, :2]) < VOXEL_HALF_M, axis=1)
+        vx = sensors.voxelize(allp[inside], VOXEL_M)
+        self._msg(out, tp.voxel_map, "sensor_msgs/msg/PointCloud2", t, lambda f: f.pointcloud_xyz(t, tp.odom_frame, vx, k // self.vox_p))
 
-        if k % self.cam_p == 0:
-            from PIL import Image
+    def _cameras(self, out: list, k: int) -> None:
+        from PIL import Image
 
-            T_wb = make_transform(quat_to_matrix(self.q_true[k]), poses.pos[k])
-            for c, topics in tp.cameras.items():
-                img = sensors.render(sc, self.raster, T_wb @ self.T_base_cam[c], self.K)
-                buf = io.BytesIO()
-                Image.fromarray(img).save(buf, format="JPEG", quality=90)
-                jpeg = buf.getvalue()
-                frame = camera_frame(c)
-                seq = k // self.cam_p
-                self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f: f.compressed_image(t, frame, jpeg, seq))
-                self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
-        return out
+        sc, tp, poses = self.cfg.synth, self.cfg.topics, self.world.poses
+        t = int(self.world.t_ns[k])
+        T_wb = make_transform(quat_to_matrix(self.q_true[k]), poses.pos[k])
+        for c, topics in tp.cameras.items():
+            img = sensors.render(sc, self.raster, T_wb @ self.T_base_cam[c], self.K)
+            buf = io.BytesIO()
+            Image.fromarray(img).save(buf, format="JPEG", quality=90)
+            jpeg = buf.getvalue()
+            frame = camera_frame(c)
+            seq = k // self.cam_p
+            self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f: f.compressed_image(t, frame, jpeg, seq))
+            self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
 
 
 _TICKER: _Ticker | None = None

@@ -98,18 +98,8 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
     model = build_model(tc, ds.data_cfg).to(tc.device)
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=tc.lr, total_steps=tc.steps)
-    run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / "ckpt.pt"
-    step, history = 0, []
-    if resume:
-        if not ckpt_path.is_file():
-            raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
-        state, _, _ = _load_ckpt(ckpt_path, tc)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optim"])
-        sched.load_state_dict(state["sched"])
-        step, history = state["step"], state["history"]
-        torch.set_rng_state(state["torch_rng"])
+    step, history = _resume(ckpt_path, tc, model, opt, sched) if resume else (0, [])
     save_config(cfg, run_dir / "gtgen-config.yaml")
     g = torch.Generator()
     g.manual_seed(tc.seed + step)
@@ -124,6 +114,7 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
             yield from loader
 
     it = batches()
+
     def status() -> str:
         return f"loss {history[-1]['total']:.4f}" if history else ""
 
@@ -145,13 +136,30 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
                               "torch_rng": torch.get_rng_state()})
     secs = time.perf_counter() - t0
     write_atomic(run_dir / "metrics.json", json.dumps({"history": history, "seconds": secs}, indent=1))
+    _link_latest(run_dir)
+    first = history[0]["total"] if history else float("nan")
+    return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
+
+
+def _resume(ckpt_path: Path, tc: TrainConfig, model: MMLite, opt, sched) -> tuple[int, list]:
+    """Load the run's checkpoint into the model, optimizer and schedule; return (step, history)."""
+    if not ckpt_path.is_file():
+        raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
+    state, _, _ = _load_ckpt(ckpt_path, tc)
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optim"])
+    sched.load_state_dict(state["sched"])
+    torch.set_rng_state(state["torch_rng"])
+    return state["step"], state["history"]
+
+
+def _link_latest(run_dir: Path) -> None:
+    """Point ``runs/latest`` at ``run_dir`` (unless a real folder of that name is there)."""
     latest = run_dir.parent / "latest"
     if latest.is_symlink() or not latest.exists():
         if latest.is_symlink():
             latest.unlink()
         latest.symlink_to(run_dir.name)
-    first = history[0]["total"] if history else float("nan")
-    return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
 
 
 def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:

@@ -1,0 +1,196 @@
+"""The stage commands: synth, extract, fuse, dem-align, and build over many drives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from gtgen.cli.app import WORKSPACE, ConfigOpt, app, console, load, table
+from gtgen.errors import GtgenError
+
+@app.command()
+def synth(
+    out: Path = typer.Argument(..., help="output folder (created; must be empty or absent)"),
+    seed: Optional[int] = typer.Option(None, help="random seed [default from config: 0]"),
+    duration: Optional[float] = typer.Option(None, help="drive duration [s] [default from config: 60]"),
+    format: Optional[str] = typer.Option(None, "--format", help="mcap | bag | both [default from config: both]"),
+    overwrite: bool = typer.Option(False, help="replace a non-empty OUT"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Write a seeded synthetic drive: bags + DEM tiles + truth.
+
+    **Examples**
+
+        gtgen synth drive                      # 60 s drive, ROS 2 MCAP and ROS 1 bag
+        gtgen synth drive --seed 3 --duration 120 --format mcap
+    """
+    over: dict[str, Any] = {}
+    if seed is not None:
+        over["seed"] = seed
+    if duration is not None:
+        if duration <= 0:
+            raise GtgenError(f"--duration {duration} must be a positive number of seconds")
+        over["duration_s"] = duration
+    if format is not None:
+        if format not in ("mcap", "bag", "both"):
+            raise GtgenError(f"--format {format!r} unknown; expected one of ['mcap', 'bag', 'both']")
+        over["formats"] = format
+    cfg = load(config, {"synth": over})
+    from gtgen.synth import run_synth
+
+    res = run_synth(cfg, out, overwrite=overwrite)
+    rows: list[tuple[str, Any]] = [
+        ("output", res.out),
+        ("bags", ", ".join(p.name for p in res.bags)),
+        ("DEM tiles", f"{len(res.dem_tiles)} in {res.out / 'dem'}"),
+        ("duration", f"{res.duration_s:.1f} s"),
+        ("distance", f"{res.distance_m:.0f} m"),
+    ]
+    rows += [(f"  {k}", v) for k, v in sorted(res.counts.items())]
+    table("gtgen synth", rows)
+
+
+@app.command()
+def extract(
+    bags: list[Path] = typer.Argument(..., help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
+    out: Path = typer.Option(WORKSPACE / "drive.zarr", "-o", "--out", help="drive store to write"),
+    workers: int = typer.Option(2, min=1, help="processes reading the bags (record-time slices)"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Read a drive's bags into a per-drive store: poses, GNSS, maps, images, voxel maps.
+
+    **Examples**
+
+        gtgen extract bag.mcap                         # -> ./gtgen_ws/drive.zarr
+        gtgen extract run_0.bag run_1.bag -o runs/a.zarr
+        gtgen extract rosbag2_folder --config my_robot.yaml
+    """
+    cfg = load(config)
+    from gtgen.extract import run_extract
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    res = run_extract(bags, out, cfg, workers=workers)
+    from rich.table import Table
+
+    t = Table(title="gtgen extract: topics")
+    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "record-header max s"):
+        t.add_column(col)
+    for s in res.topics:
+        t.add_row(s["topic"], s["role"], str(s["count"]), str(s["rate_hz"]), str(s["max_gap_s"]),
+                  str(s["decode_failures"]) + (f" ({s['first_error'][:40]})" if s["first_error"] else ""),
+                  str(s["record_minus_header_max_s"]))
+    console().print(t)
+    rows: list[tuple[str, Any]] = [
+        ("store", res.store),
+        ("candidates", res.n_candidates),
+        ("samples kept", res.n_samples),
+    ]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    rows += [(f"maps kept ({k})", v) for k, v in res.maps_kept.items()]
+    rows += [(f"skew {k}", f"{v:.3f} s") for k, v in res.skew_s.items()]
+    if res.reread:
+        rows.append(("read twice", f"{res.reread} kept messages no slice had staged (stamps far from record times)"))
+    rows += [("warning", w) for w in res.warnings]
+    table("gtgen extract", rows)
+
+
+@app.command()
+def fuse(
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
+    window: Optional[float] = typer.Option(None, "--window", help="future window [s] [default from config: 60]"),
+    past: Optional[float] = typer.Option(None, "--past", help="past window [s] [default from config: 0]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="fused store [default: fused.zarr beside DRIVE]"),
+    workers: int = typer.Option(2, help="processes (one per range)"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Hindsight-fuse each sample's maps: elevation, confidence, risk, regions, X-Racer at t.
+
+    **Examples**
+
+        gtgen fuse --window 60                 # ./gtgen_ws/drive.zarr -> ./gtgen_ws/fused.zarr
+        gtgen fuse runs/a.zarr --window 30 --past 5
+    """
+    over: dict[str, Any] = {}
+    if window is not None:
+        if window <= 0:
+            raise GtgenError(f"--window {window} must be a positive number of seconds")
+        over["window_s"] = window
+    if past is not None:
+        if past < 0:
+            raise GtgenError(f"--past {past} must be zero or a positive number of seconds")
+        over["past_s"] = past
+    cfg = load(config, {"fuse": over})
+    from gtgen.fuse.run import run_fuse
+
+    res = run_fuse(drive, out or drive.parent / "fused.zarr", cfg, workers=workers)
+    rows: list[tuple[str, Any]] = [("store", res.store), ("samples", res.n_samples), ("fused", res.n_fused)]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    for r, cov in res.coverage.items():
+        rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
+    table("gtgen fuse", rows)
+
+
+@app.command("dem-align")
+def dem_align(
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
+    fused: Optional[Path] = typer.Option(None, "--fused", help="fused store [default: fused.zarr beside DRIVE]"),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Place the DEM by GNSS, refine per sample by ICP, reject misfits, inpaint, write shards.
+
+    **Examples**
+
+        gtgen dem-align                        # ./gtgen_ws/{drive,fused}.zarr -> ./gtgen_ws/dataset.zarr
+        gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
+    """
+    cfg = load(config)
+    from gtgen.dataset.run import run_dem_align
+
+    res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg)
+    import numpy as np
+
+    f = np.asarray(res.fitness) if res.fitness else None
+    rows: list[tuple[str, Any]] = [
+        ("dataset", res.store),
+        ("samples in", res.n_in),
+        ("samples kept", res.n_kept),
+    ]
+    rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
+    rows += [(f"  split {k}", v) for k, v in res.split_counts.items()]
+    rows += [
+        ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
+        ("vertical offset odom->DEM", f"{res.dz_dem_m:+.2f} m"),
+        ("ellipsoid - DEM height (geoid)", f"{res.geoid_offset_m:+.2f} m"),
+    ]
+    if f is not None:
+        rows.append(("ICP fitness", f"median {np.median(f):.3f}, min {f.min():.3f}"))
+    table("gtgen dem-align", rows)
+
+
+@app.command()
+def build(
+    sources: list[Path] = typer.Argument(..., help="manifest YAML, drive folders, a folder of drive folders, or bags"),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside each drive's bags]"),
+    out: Path = typer.Option(Path("gtgen_build"), "-o", "--out", help="output folder (dataset.zarr + drives/)"),
+    workers: int = typer.Option(2, help="local worker processes"),
+    scheduler: Optional[str] = typer.Option(None, help="dask.distributed scheduler address (e.g. tcp://host:8786)"),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """Build one dataset from many drives (extract -> fuse -> dem-align each), resumable.
+
+    **Examples**
+
+        gtgen build drives/ --dem usgs_1m/ -o paso_dataset --workers 2
+        gtgen build manifest.yaml --scheduler tcp://10.0.0.5:8786
+    """
+    from pipelines.build_dataset import build_dataset, summary_rows
+
+    cfg = load(config)
+    res = build_dataset(sources, dem, out, cfg, workers=workers, scheduler=scheduler)
+    table("gtgen build", summary_rows(res))
+    if any(not r.ok for r in res.drives):
+        raise typer.Exit(code=2)
