@@ -73,13 +73,13 @@ class TopicsConfig(_Model):
 
     map_micro: str = Field("/xracer/map/micro", description="grid_map_msgs/GridMap, micro range")
     map_short: str = Field("/xracer/map/short", description="grid_map_msgs/GridMap, short range")
-    odometry: str = Field("/xracer/odometry", description="nav_msgs/Odometry odom -> base")
-    tf: str = Field("/tf", description="tf2_msgs/TFMessage")
+    odometry: str | None = Field("/xracer/odometry", description="nav_msgs/Odometry odom -> base; null: poses from TF odom_frame -> base_frame")
+    tf: str = Field("/tf", description="tf2_msgs/TFMessage (or tf/tfMessage): moving frames")
     tf_static: str = Field("/tf_static", description="tf2_msgs/TFMessage, latched extrinsics")
     gnss: str = Field("/gnss/fix", description="sensor_msgs/NavSatFix")
     cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras)
     voxel_map: str = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2")
-    odom_frame: str = Field("odom", description="frame of odometry and maps")
+    odom_frame: str = Field("odom", description="frame the drive is stored in (maps, voxel maps and poses are put in it through TF)")
     base_frame: str = Field("base_link", description="vehicle base frame")
     layers: LayersConfig = Field(default_factory=LayersConfig)
 
@@ -87,10 +87,30 @@ class TopicsConfig(_Model):
         """Return the GridMap topic of range ``rng``."""
         return self.map_micro if rng == "micro" else self.map_short
 
+    def roles(self) -> dict[str, str]:
+        """Return {config key: topic} of every topic-valued key (tf topics excluded)."""
+        out = {"map_micro": self.map_micro, "map_short": self.map_short, "gnss": self.gnss, "voxel_map": self.voxel_map}
+        if self.odometry is not None:
+            out["odometry"] = self.odometry
+        for c, ct in self.cameras.items():
+            out[f"cameras.{c}.image"] = ct.image
+            out[f"cameras.{c}.info"] = ct.info
+        return out
+
     @model_validator(mode="after")
-    def _four_cameras(self) -> TopicsConfig:
+    def _four_cameras_one_role_each(self) -> TopicsConfig:
         if sorted(self.cameras) != sorted(CAMERAS):
             raise ValueError(f"cameras must be exactly {list(CAMERAS)}, got {sorted(self.cameras)}")
+        keys: dict[str, list[str]] = {}
+        for key, topic in {**self.roles(), "tf": self.tf, "tf_static": self.tf_static}.items():
+            keys.setdefault(topic, []).append(key)
+        twice = {t: k for t, k in keys.items() if len(k) > 1}
+        if twice:
+            t, k = next(iter(twice.items()))
+            raise ValueError(f"topic {t!r} is given for {' and '.join(f'topics.{x}' for x in k)}; each topic plays one role")
+        names = [self.layers.elevation, self.layers.risk, self.layers.confidence]
+        if len(set(names)) < 3:
+            raise ValueError(f"topics.layers names {names} must be three different GridMap layers")
         return self
 
 

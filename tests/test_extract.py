@@ -106,7 +106,7 @@ def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp
     out = tmp_path / "from_bag.zarr"
     run_extract([drive_dir / "drive.bag"], out, cfg)
     a, b = open_drive(drive_store), open_drive(out)
-    for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "calib/T_base_cam"):
+    for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "samples/T_base_cam"):
         np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
     np.testing.assert_array_equal(a["maps/micro/elevation_m"][3], b["maps/micro/elevation_m"][3])
     np.testing.assert_array_equal(a["samples/images"][2], b["samples/images"][2])

@@ -92,10 +92,11 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     # the small per-sample arrays: one zarr read each for the block's samples (only theirs:
     # rejected ones between them are skipped), as zarr's cost per call dominates
     ks = np.array([it.k for it in items])
-    rows = {name: drive[name].oindex[ks] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns")}
+    rows = {name: drive[name].oindex[ks] for name in ("samples/pos_odom_m", "samples/quat_odom_xyzw", "samples/images", "samples/t_ns",
+                                                      "samples/T_base_cam")}
     vs = np.unique(vox_index[ks])
     vox = drive["voxel_maps/points_odom_m"].oindex[vs]
-    calib = {"inputs/K": drive["calib/K"][:], "inputs/T_base_cam": drive["calib/T_base_cam"][:]}
+    K = drive["calib/K"][:]
     samples, points = [], []
     for j, it in enumerate(items):
         pos, quat = rows["samples/pos_odom_m"][j], rows["samples/quat_odom_xyzw"][j]
@@ -105,7 +106,7 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
         v = vox_index[it.k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
-        sample.update(calib)
+        sample.update({"inputs/K": K, "inputs/T_base_cam": rows["samples/T_base_cam"][j]})
         sample.update(_inputs_and_meta(cfg, it, rows["samples/images"][j], rows["samples/t_ns"][j], pos, quat, yaw, pts_t))
         samples.append(sample)
         points.append(pts_t)

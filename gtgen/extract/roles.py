@@ -12,7 +12,7 @@ TYPES = {
     "voxel_map": ("sensor_msgs/msg/PointCloud2",),
     "image": ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
     "info": ("sensor_msgs/msg/CameraInfo",),
-    "tf": ("tf2_msgs/msg/TFMessage",),
+    "tf": ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"),
     "map": ("grid_map_msgs/msg/GridMap",),
 }
 
@@ -48,14 +48,20 @@ def resolve_roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, s
         _require(topics, f"camera_info.{c}", tp.cameras[c].info, "info")
         roles[tp.cameras[c].image] = f"camera.{c}"
         roles[tp.cameras[c].info] = f"camera_info.{c}"
-    if tp.odometry in topics:
+    if tp.odometry is not None:
+        if tp.odometry not in topics and tp.tf in topics:
+            cands = sorted(t for t, i in topics.items() if i.msgtype in TYPES["odometry"])
+            raise TopicError(f"role 'odometry': topic '{tp.odometry}' not in the bags; Odometry topics found: {cands}; "
+                             f"set topics.odometry: null to take poses from TF '{tp.odom_frame}' -> '{tp.base_frame}' on '{tp.tf}'")
         _require(topics, "odometry", tp.odometry, "odometry")
         roles[tp.odometry] = "odometry"
-    elif tp.tf in topics:
+    elif tp.tf not in topics:
+        raise TopicError(f"topics.odometry is null (poses from TF), but topic '{tp.tf}' is not in the bags")
+    if tp.tf in topics:
+        _require(topics, "tf", tp.tf, "tf")
         roles[tp.tf] = "tf"
-    else:
-        _require(topics, "odometry", tp.odometry, "odometry")
     if tp.tf_static in topics:
+        _require(topics, "tf_static", tp.tf_static, "tf")
         roles[tp.tf_static] = "tf_static"
     else:
         raise TopicError(f"role 'tf_static': topic '{tp.tf_static}' not in the bags; camera extrinsics come from it")

@@ -1,8 +1,9 @@
 """``gtgen extract``: bags -> a time-indexed per-drive store, in one read of the bags.
 
-``run_extract`` reads like its steps: open the bags and resolve the roles, read them in
-record-time slices on the pool (each slice staging what the plan will likely keep),
-merge the slices, build the pose track, select the samples, and write the store.
+``run_extract`` reads like its steps: open the bags, resolve the roles and read the
+static frames, read the bags in record-time slices on the pool (each slice staging what
+the plan will likely keep), merge the slices, build the TF buffer and the pose track,
+drop what no transform places in odom, select the samples, and write the store.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from gtgen.config import CAMERAS, RANGES, GtgenConfig, save_config
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract import calib
 from gtgen.extract.roles import resolve_roles
-from gtgen.extract.scan import Scan, import_readers, scan_slice, slices
+from gtgen.extract.scan import Frames, Scan, import_readers, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
 from gtgen.runtime.output import stage_output
@@ -39,6 +40,7 @@ class ExtractResult:
     maps_kept: dict[str, int]
     skew_s: dict[str, float]
     warnings: list[str]
+    poses: str = ""  # where the poses came from
     reread: int = 0  # kept messages no slice had staged, read in a second pass
     bag_sha256: list[str] = field(default_factory=list)  # of each bag, in the order given
 
@@ -46,7 +48,7 @@ class ExtractResult:
         """Return the report stored in the drive store's attributes."""
         return {"topics": self.topics, "n_candidates": self.n_candidates, "n_samples": self.n_samples,
                 "rejected": self.rejected, "maps_kept": self.maps_kept, "skew_s": self.skew_s,
-                "reread": self.reread, "warnings": self.warnings}
+                "poses": self.poses, "reread": self.reread, "warnings": self.warnings}
 
 
 def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, n_slices: int | None = None,
@@ -63,36 +65,40 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
     with stage_output(out) as tmp, Pool(workers, warm=import_readers) as pool, \
             ThreadPoolExecutor(max_workers=1) as hasher:  # hashing releases the GIL: it overlaps the read
-        roles, bounds = _open(paths, cfg, workers, n_slices)
+        roles, bounds, frames = _open(paths, cfg, workers, n_slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []
         root = create_group(tmp)  # before the read: the slices stage into it
-        scan, parts = _read(pool, paths, cfg, roles, bounds, tmp if staging else None)
-        track, warnings = calib.pose_track(cfg, scan)
+        scan, parts = _read(pool, paths, cfg, roles, frames, bounds, tmp if staging else None)
+        tf = calib.tf_buffer(cfg, scan)
+        track, poses, warnings = calib.pose_track(cfg, scan, tf)
+        calib.drop_untransformable(cfg, scan, tf)
         plan = _plan(cfg, track, scan)
-        write_small(root, scan, track, plan, calib.extrinsics(cfg, scan))
-        reread = write_large(root, tmp, paths, cfg, roles, scan, track, plan, parts, pool)
+        write_small(root, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
+        reread = write_large(root, tmp, paths, cfg, roles, scan, tf, plan, parts, pool)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
+        result.poses = poses
         _finish(root, tmp, paths, cfg, result)
     return result
 
 
-def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list]:
-    """Open the bags once: the roles of their topics and the read's slices."""
+def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list, Frames]:
+    """Open the bags once: the roles of their topics, the read's slices, the static frames."""
     with BagSet(paths) as bags:
-        return resolve_roles(cfg, bags.topics()), slices(bags, workers, n_slices)
+        roles = resolve_roles(cfg, bags.topics())
+        return roles, slices(bags, workers, n_slices), prepass(bags, cfg, roles)
 
 
-def _read(pool: Pool, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], bounds: list, stage: Path | None
-          ) -> tuple[Scan, Slices]:
+def _read(pool: Pool, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frames: Frames, bounds: list,
+          stage: Path | None) -> tuple[Scan, Slices]:
     """Read every slice on the pool; return the merged scan and the slices' parts."""
-    jobs = [(paths, cfg, roles, a, b, None if stage is None else str(stage), k) for k, (a, b) in enumerate(bounds)]
+    jobs = [(paths, cfg, roles, frames, a, b, None if stage is None else str(stage), k) for k, (a, b) in enumerate(bounds)]
     parts = list(pool.map(scan_slice, jobs, "extract: reading"))
     slices_ = Slices(bounds, [p.counts() for p in parts], [p.staged for p in parts] if stage is not None else [])
     scan = parts[0]  # before merging, the counts above: the merge grows parts[0]
     for part in parts[1:]:
         scan.extend(part)
     for r in RANGES:
-        if not any(ok for _, ok in scan.map_meta.get(f"map.{r}", [])):
+        if not any(m[1] for m in scan.map_meta.get(f"map.{r}", [])):
             st = scan.stats[cfg.topics.map_topic(r)]
             raise DecodeError(f"{st.topic}: none of its {st.count} GridMaps is usable: {st.first_error or 'no message'}")
     return scan, slices_

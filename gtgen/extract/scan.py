@@ -19,7 +19,9 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.decode.tf import frame_id, quat_xyzw, transform_matrix
 from gtgen.bag.reader import BagSet, Message, stamp_ns
+from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
 from gtgen.config import GtgenConfig
+from gtgen.extract.roles import is_large
 from gtgen.extract.stage import Staged, Stager
 
 SLICE_S = 20.0  # longest record-time slice of a pass [s]: bounds the memory of one job
@@ -36,6 +38,12 @@ class TopicStats:
     first_error: str = ""
     stamps: list[int] = field(default_factory=list)
     record_skew_max_s: float = 0.0
+    dropped: dict[str, int] = field(default_factory=dict)  # messages not used, by why
+
+    def drop(self, why: str, n: int = 1) -> None:
+        """Count ``n`` messages not used because of ``why``."""
+        if n:
+            self.dropped[why] = self.dropped.get(why, 0) + n
 
     def summary(self) -> dict:
         """Return the report line (count, rate, largest gap, decode failures, skew)."""
@@ -51,6 +59,7 @@ class TopicStats:
             "decode_failures": self.decode_failures,
             "first_error": self.first_error,
             "record_minus_header_max_s": round(self.record_skew_max_s, 3),
+            "dropped": dict(self.dropped),
         }
 
     def extend(self, other: TopicStats) -> None:
@@ -60,6 +69,8 @@ class TopicStats:
         self.first_error = self.first_error or other.first_error
         self.stamps.extend(other.stamps)
         self.record_skew_max_s = max(self.record_skew_max_s, other.record_skew_max_s)
+        for k, v in other.dropped.items():
+            self.drop(k, v)
 
 
 @dataclass
@@ -68,13 +79,14 @@ class Scan:
 
     stats: dict[str, TopicStats]
     odom: list[tuple[int, NDArray, NDArray]] = field(default_factory=list)
-    tf_dyn: list[tuple[int, NDArray, NDArray]] = field(default_factory=list)
-    static: dict[tuple[str, str], NDArray] = field(default_factory=dict)
+    tf: dict[Edge, EdgeSamples] = field(default_factory=lambda: defaultdict(EdgeSamples))  # dynamic edges
+    static: dict[Edge, NDArray] = field(default_factory=dict)
     gnss: list[tuple] = field(default_factory=list)
     info: dict[str, object] = field(default_factory=dict)
     frames: dict[str, str] = field(default_factory=dict)
     stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
-    map_meta: dict[str, list[tuple[int, bool]]] = field(default_factory=lambda: defaultdict(list))
+    voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it did not decode
+    map_meta: dict[str, list[tuple[int, bool, str]]] = field(default_factory=lambda: defaultdict(list))  # (stamp, usable, frame)
     map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution)
     staged: Staged | None = None  # what this slice staged (not merged by ``extend``)
     warnings: list[str] = field(default_factory=list)
@@ -88,8 +100,10 @@ class Scan:
         for t, o in other.stats.items():
             self.stats[t].extend(o)
         self.odom.extend(other.odom)
-        self.tf_dyn.extend(other.tf_dyn)
+        for e, samples in other.tf.items():
+            self.tf[e].extend(samples)
         self.static.update(other.static)
+        self.voxel_frames.extend(other.voxel_frames)
         self.gnss.extend(other.gnss)
         for k, v in other.info.items():
             self.info.setdefault(k, v)
@@ -128,10 +142,44 @@ def import_readers() -> None:
     import zstandard  # noqa: F401
 
 
-def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], start: int | None, stop: int | None,
-               store: str | None = None, k: int = 0) -> Scan:
+@dataclass(frozen=True)
+class Frames:
+    """What every slice knows before it starts: the static TF edges and the frames the
+    drive's data is published in (from the first message of each large topic)."""
+
+    static: dict[Edge, NDArray]
+    data: frozenset[str]
+
+
+def prepass(bags: BagSet, cfg: GtgenConfig, roles: dict[str, str]) -> Frames:
+    """Read ``tf_static`` and the first message of each large topic (cheap: only the chunks
+    that hold them are read)."""
+    tp = cfg.topics
+    static: dict[Edge, NDArray] = {}
+    frames = {tp.odom_frame, tp.base_frame}
+    for topic, _, _, msg, _ in bags.messages([tp.tf_static]):
+        if msg is not None:
+            static.update({(frame_id(tr.header.frame_id), frame_id(tr.child_frame_id)): transform_matrix(tr.transform)
+                           for tr in msg.transforms})  # type: ignore[attr-defined]
+    for topic, role in roles.items():
+        if is_large(role) or role.startswith("camera_info."):
+            for _, _, _, msg, _ in bags.messages([topic]):
+                if msg is not None:
+                    frames.add(frame_id(_header(role, msg).frame_id))
+                    break
+    return Frames(static, frozenset(frames))
+
+
+def _header(role: str, msg: object) -> object:
+    # a ROS 1 GridMap carries its header in info
+    return msg.info.header if role.startswith("map.") and not hasattr(msg, "header") else msg.header  # type: ignore[attr-defined]
+
+
+def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frames: Frames, start: int | None,
+               stop: int | None, store: str | None = None, k: int = 0) -> Scan:
     """The pass over the messages recorded in [start, stop) (a process-pool job). With a
-    ``store``, what the plan will likely keep is staged there as slice ``k``."""
+    ``store``, what the plan will likely keep is staged there as slice ``k``. Only the
+    dynamic TF edges that can connect the data's frames are kept (memory)."""
     with BagSet(paths) as bags:
         if store is None:
             scan = scan_messages(bags.messages(list(roles), start, stop), cfg, roles)
@@ -140,6 +188,11 @@ def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], start
                 scan = scan_messages(bags.messages(list(roles), start, stop), cfg, roles, stager.add)
             scan.staged = stager.result
         scan.warnings = list(bags.warnings)
+    seen = frames.data | set(scan.frames.values()) | set(scan.voxel_frames) | {m[2] for v in scan.map_meta.values() for m in v}
+    keep = relevant_edges(list(scan.tf), [*frames.static, *scan.static], seen - {""})
+    scan.tf = defaultdict(EdgeSamples, {e: s for e, s in scan.tf.items() if e in keep})
+    for s in scan.tf.values():
+        s.pack()
     return scan
 
 
@@ -168,14 +221,16 @@ class _Scanner:
             s.decode_failures += 1
             s.first_error = s.first_error or err or ""
             if role.startswith("map."):
-                self.scan.map_meta[role].append((-1, False))
+                self.scan.map_meta[role].append((-1, False, ""))
             elif role.startswith("camera.") or role == "voxel_map":
                 self.scan.stamps[role].append(-1)
+                if role == "voxel_map":
+                    self.scan.voxel_frames.append("")
             return
         if role in ("tf_static", "tf"):
             self._tf(role, msg)
             return
-        hdr = msg.info.header if role.startswith("map.") and not hasattr(msg, "header") else msg.header  # type: ignore[attr-defined]
+        hdr = _header(role, msg)
         t = stamp_ns(hdr)
         s.stamps.append(t)
         s.record_skew_max_s = max(s.record_skew_max_s, abs(t_rec - t) * 1e-9)
@@ -190,27 +245,28 @@ class _Scanner:
             self.scan.stamps[role].append(t)
             if role.startswith("camera."):
                 self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
+            else:
+                self.scan.voxel_frames.append(frame_id(hdr.frame_id))
             if self.stage is not None:
                 self.stage(role, s.count - 1, t, msg, msgtype, True)
         elif role.startswith("map."):
-            self._map(role, s, t, msg, msgtype)
+            self._map(role, s, t, msg, msgtype, frame_id(hdr.frame_id))
 
     def _tf(self, role: str, msg: object) -> None:
-        tp = self.cfg.topics
         for tr in msg.transforms:  # type: ignore[attr-defined]
             parent, child = frame_id(tr.header.frame_id), frame_id(tr.child_frame_id)
             if role == "tf_static":
                 self.scan.static[(parent, child)] = transform_matrix(tr.transform)
-            elif parent == tp.odom_frame and child == tp.base_frame:
-                T = transform_matrix(tr.transform)
-                self.scan.tf_dyn.append((stamp_ns(tr.header), T[:3, 3], quat_xyzw(tr.transform.rotation)))
+            else:
+                tt = tr.transform.translation
+                self.scan.tf[(parent, child)].add(stamp_ns(tr.header), (tt.x, tt.y, tt.z), quat_xyzw(tr.transform.rotation))
 
     def _gnss(self, t: int, msg: object) -> None:
         cov = np.asarray(msg.position_covariance, dtype=np.float64)  # type: ignore[attr-defined]
         var = cov[[0, 4, 8]] if msg.position_covariance_type > 0 and cov.size == 9 else np.full(3, np.nan)  # type: ignore[attr-defined]
         self.scan.gnss.append((t, msg.latitude, msg.longitude, msg.altitude, var, msg.status.status))  # type: ignore[attr-defined]
 
-    def _map(self, role: str, s: TopicStats, t: int, msg: object, msgtype: str) -> None:
+    def _map(self, role: str, s: TopicStats, t: int, msg: object, msgtype: str, frame: str) -> None:
         names = list(msg.layers)  # type: ignore[attr-defined]
         ok = all(n in names for n in self.layer_names)
         if not ok:
@@ -224,7 +280,7 @@ class _Scanner:
             elif role not in self.scan.map_shape:
                 g = decode_gridmap(msg, self.layer_names)
                 self.scan.map_shape[role] = (g.shape, g.resolution_m)
-        self.scan.map_meta[role].append((t, ok))
+        self.scan.map_meta[role].append((t, ok, frame))
         if self.stage is not None:
             self.stage(role, s.count - 1, t, msg, msgtype, ok)
 

@@ -42,14 +42,14 @@ def period_ns(cfg: GtgenConfig) -> int:
 class Staged:
     """What one slice staged: the slice ordinals staged per role (chunk files named by
     ordinal), map poses as stamped (frames resolved later), voxel point counts (voxel
-    maps in base_link are kept raw in .npy files, for the pose track to place)."""
+    maps in frames other than odom are kept raw in .npy files, for the TF buffer to place)."""
 
     k: int
     dir: str
     ordinals: dict[str, set[int]] = field(default_factory=lambda: defaultdict(set))
     map_pose: dict[tuple[str, int], tuple[NDArray, float, str]] = field(default_factory=dict)
     map_shape: dict[str, tuple[int, int]] = field(default_factory=dict)
-    voxels: dict[int, tuple[int, int]] = field(default_factory=dict)  # ordinal -> (points, stamp); -1 points: raw .npy
+    voxels: dict[int, tuple[int, int, str]] = field(default_factory=dict)  # ordinal -> (points, stamp, frame); -1 points: raw .npy
 
     def chunk(self, role: str, i: int, layer: str = "") -> Path:
         """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
@@ -121,23 +121,20 @@ class Stager:
         self.result.ordinals[role].add(i)
 
     def _stage_voxel(self, i: int, t: int, msg: object) -> None:
-        tp = self.cfg.topics
         frame = frame_id(msg.header.frame_id)  # type: ignore[attr-defined]
-        if frame not in ("", tp.odom_frame, tp.base_frame):
-            return
         try:
             pts = decode_pointcloud(msg)
         except DecodeError:
             return
-        if frame == tp.base_frame:  # to odom once the whole pose track is known
+        if frame not in ("", self.cfg.topics.odom_frame):  # to odom once the whole TF buffer is known
             f = self.result.raw_voxels(i)
             make_parent(f, self.made)
             np.save(f, pts)
-            self.result.voxels[i] = (-1, t)
+            self.result.voxels[i] = (-1, t, frame)
             return
         pts = nearest_points(pts, self.cfg.shards.max_voxel_points)
         self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
-        self.result.voxels[i] = (len(pts), t)
+        self.result.voxels[i] = (len(pts), t, frame)
 
     def _resolve(self, role: str) -> None:
         """Stage, for each front frame older than the newest map, the latest map stamped at

@@ -1,4 +1,4 @@
-"""Voxel-map points: to odom, capped to the nearest ones, padded into fixed-size rows."""
+"""Voxel-map points: put in odom, capped to the nearest ones, padded into fixed-size rows."""
 
 from __future__ import annotations
 
@@ -7,22 +7,17 @@ from numpy.typing import NDArray
 
 from gtgen.bag.decode.pointcloud import decode_pointcloud
 from gtgen.bag.decode.tf import frame_id
-from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import stamp_ns
+from gtgen.bag.tf import TfBuffer
 from gtgen.config import GtgenConfig
-from gtgen.errors import DecodeError
 
 
-def voxel_points(msg: object, cfg: GtgenConfig, track: PoseTrack) -> NDArray[np.float32]:
-    """Return a voxel map's points in odom, at most ``shards.max_voxel_points`` (the nearest)."""
-    tp = cfg.topics
+def voxel_points(msg: object, cfg: GtgenConfig, tf: TfBuffer) -> NDArray[np.float32]:
+    """Return a voxel map's points in odom (through TF at its stamp), at most
+    ``shards.max_voxel_points`` (the nearest)."""
     pts = decode_pointcloud(msg)
     frame = frame_id(msg.header.frame_id)  # type: ignore[attr-defined]
-    if frame not in ("", tp.odom_frame):
-        if frame != tp.base_frame:
-            raise DecodeError(f"voxel map frame '{frame}' unsupported; expected '{tp.odom_frame}' or '{tp.base_frame}'")
-        pts = base_to_odom(pts, stamp_ns(msg.header), track)  # type: ignore[attr-defined]
-    return nearest_points(pts, cfg.shards.max_voxel_points)
+    return nearest_points(to_odom_frame(pts, cfg, tf, frame, stamp_ns(msg.header)), cfg.shards.max_voxel_points)  # type: ignore[attr-defined]
 
 
 def padded(pts: NDArray[np.float32], n: int) -> NDArray[np.float32]:
@@ -32,9 +27,11 @@ def padded(pts: NDArray[np.float32], n: int) -> NDArray[np.float32]:
     return out
 
 
-def base_to_odom(pts: NDArray[np.float32], t: int, track: PoseTrack) -> NDArray[np.float32]:
-    """Return points given in the base frame at time ``t`` in odom."""
-    T = track.transforms(np.array([t]))[0]
+def to_odom_frame(pts: NDArray[np.float32], cfg: GtgenConfig, tf: TfBuffer, frame: str, t: int) -> NDArray[np.float32]:
+    """Return points given in ``frame`` at time ``t`` in odom."""
+    if frame in ("", cfg.topics.odom_frame):
+        return pts
+    T = tf.at(cfg.topics.odom_frame, frame, t)
     return (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
 

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.decode.image import decode_image, resize_image
 from gtgen.bag.poses import PoseTrack
+from gtgen.bag.tf import TfBuffer
 from gtgen.bag.reader import BagSet
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
@@ -26,7 +27,7 @@ from gtgen.extract.roles import is_large
 from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan
 from gtgen.extract.stage import STAGE, Staged
-from gtgen.extract.voxels import base_to_odom, nearest_points, padded, voxel_points
+from gtgen.extract.voxels import nearest_points, padded, to_odom_frame, voxel_points
 from gtgen.runtime.pool import BackgroundWrites, Pool
 from gtgen.storage.chunks import Runs, check_encoded_chunks, chunk_file, compressors, place_chunk
 from gtgen.storage.schema import DRIVE, MAP_LAYERS
@@ -45,7 +46,7 @@ def create(root: Any, path: str, shape: tuple, chunks: tuple | None = None, flat
                              chunk_key_encoding=keys)
 
 
-def write_small(root: Any, scan: Scan, track: PoseTrack, plan: Plan, extr: dict) -> None:
+def write_small(root: Any, scan: Scan, track: PoseTrack, plan: Plan, K: NDArray, T_base_cam: NDArray) -> None:
     """Write the poses, GNSS fixes, candidates, per-sample rows and calibration."""
     create(root, "poses/t_ns", track.t_ns.shape)[:] = track.t_ns
     create(root, "poses/pos_odom_m", track.pos.shape)[:] = track.pos
@@ -79,8 +80,8 @@ def write_small(root: Any, scan: Scan, track: PoseTrack, plan: Plan, extr: dict)
     create(root, "samples/voxel_t_ns", (S,))[:] = plan.voxel_t
     create(root, "samples/voxel_index", (S,))[:] = plan.voxel_index
     create(root, "voxel_maps/t_ns", plan.voxel_map_t.shape)[:] = plan.voxel_map_t
-    create(root, "calib/K", (4, 3, 3))[:] = np.stack([extr[c][0] for c in CAMERAS])
-    create(root, "calib/T_base_cam", (4, 4, 4))[:] = np.stack([extr[c][1] for c in CAMERAS])
+    create(root, "samples/T_base_cam", (S, 4, 4, 4))[:] = T_base_cam
+    create(root, "calib/K", (4, 3, 3))[:] = K
 
 
 def _wanted(plan: Plan) -> Want:
@@ -125,13 +126,14 @@ class Slices:
 class _Large:
     """Fills the store's images, maps and voxel clouds (see ``write_large``)."""
 
-    def __init__(self, root: Any, tmp: Path, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices) -> None:
-        self.root, self.tmp, self.cfg, self.scan, self.plan, self.slices = root, tmp, cfg, scan, plan, slices
+    def __init__(self, root: Any, tmp: Path, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices, tf: TfBuffer) -> None:
+        self.root, self.tmp, self.cfg, self.scan, self.plan, self.slices, self.tf = root, tmp, cfg, scan, plan, slices, tf
         self.centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
         self.yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
+        self.z0 = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
         self.n_points = np.zeros(len(plan.voxel_ord), np.int64)
         self.missing: Want = defaultdict(dict)
-        self.raw: list[tuple[int, Path, int]] = []  # (index, .npy, stamp) of voxel maps staged in base_link
+        self.raw: list[tuple[int, Path, int, str]] = []  # (index, .npy, stamp, frame) of voxel maps staged in their frame
         self._made: set[Path] = set()
         self._seps: dict[str, str] = {}
 
@@ -171,7 +173,7 @@ class _Large:
             if got is None:
                 self.missing["voxel_map"][o] = targets
             elif got[0] < 0:
-                self.raw += [(v, stg.raw_voxels(i), got[1]) for v in targets]
+                self.raw += [(v, stg.raw_voxels(i), got[1], got[2]) for v in targets]
             else:
                 self._place(stg.chunk("voxel_map", i), "voxel_maps/points_odom_m", [(v, 0, 0) for v in targets])
                 self.n_points[targets] = got[0]
@@ -185,11 +187,10 @@ class _Large:
                 continue
             for name in MAP_LAYERS:
                 self._place(stg.chunk(role, i, name), f"maps/{r}/{name}", [(k_i, 0, 0) for k_i in targets])
-            center, yaw = map_to_odom(self.cfg, self.scan.static, *stg.map_pose[(role, i)])
-            self.centers[r][targets] = center
-            self.yaws[r][targets] = yaw
+            pose = map_to_odom(self.cfg, self.tf, *stg.map_pose[(role, i)], int(self.plan.map_t[r][targets[0]]))
+            self.centers[r][targets], self.yaws[r][targets], self.z0[r][targets] = pose
 
-    def read_missing(self, pool: Pool, paths: list[Path], roles: dict[str, str], track: PoseTrack) -> int:
+    def read_missing(self, pool: Pool, paths: list[Path], roles: dict[str, str]) -> int:
         """Read what no slice staged in a targeted pass, and the raw base-frame voxel maps;
         return how many kept messages that pass read."""
         big = {t: r for t, r in roles.items() if is_large(r)}
@@ -200,19 +201,18 @@ class _Large:
             part = {role: {o: t for o, t in self.missing[role].items() if first[role] <= o < first[role] + n[role]}
                     for role in big.values()}
             if any(part.values()):
-                work.append((paths, self.cfg, big, str(self.tmp), a, b, first, part, self.scan.static, track))
+                work.append((paths, self.cfg, big, str(self.tmp), a, b, first, part, self.tf, self.plan.map_t))
         seen = 0
         with BackgroundWrites() as writes:
             for got in pool.map(read_slice, work, "extract: reading what no slice staged") if work else ():
                 seen += got.selected
-                for (r, k_i), (c, y) in got.maps.items():
-                    self.centers[r][k_i] = c
-                    self.yaws[r][k_i] = y
+                for (r, k_i), pose in got.maps.items():
+                    self.centers[r][k_i], self.yaws[r][k_i], self.z0[r][k_i] = pose
                 for v, pts in got.voxels.items():
                     self.n_points[v] = len(pts)
                     writes.submit(self.vox.__setitem__, v, padded(pts, P))
-            for v, f, t in self.raw:
-                pts = nearest_points(base_to_odom(np.load(f), t, track), P)
+            for v, f, t, frame in self.raw:
+                pts = nearest_points(to_odom_frame(np.load(f), self.cfg, self.tf, frame, t), P)
                 self.n_points[v] = len(pts)
                 writes.submit(self.vox.__setitem__, v, padded(pts, P))
         n_missing = sum(len(v) for v in self.missing.values())
@@ -227,17 +227,18 @@ class _Large:
             create(self.root, f"maps/{r}/t_ns", self.plan.map_t[r].shape)[:] = self.plan.map_t[r]
             create(self.root, f"maps/{r}/center_odom_m", self.centers[r].shape)[:] = self.centers[r]
             create(self.root, f"maps/{r}/yaw_odom_rad", self.yaws[r].shape)[:] = self.yaws[r]
+            create(self.root, f"maps/{r}/z_offset_m", self.z0[r].shape)[:] = self.z0[r]
         shutil.rmtree(self.tmp / STAGE, ignore_errors=True)
 
 
 def write_large(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
-                track: PoseTrack, plan: Plan, slices: Slices, pool: Pool) -> int:
+                tf: TfBuffer, plan: Plan, slices: Slices, pool: Pool) -> int:
     """Put the plan's images, maps and voxel clouds in the store; return how many kept
     messages no slice had staged (read in a second pass)."""
-    large = _Large(root, tmp, cfg, scan, plan, slices)
+    large = _Large(root, tmp, cfg, scan, plan, slices, tf)
     large.create_arrays()
     large.place_staged(_wanted(plan))
-    reread = large.read_missing(pool, paths, roles, track)
+    reread = large.read_missing(pool, paths, roles)
     large.finish()
     return reread
 
@@ -247,12 +248,12 @@ class SliceOut:
     """What a targeted pass over one slice read: map poses and voxel points."""
 
     selected: int
-    maps: dict[tuple[str, int], tuple[NDArray, float]]
+    maps: dict[tuple[str, int], tuple[NDArray, float, float]]  # (range, kept index) -> centre, yaw, height in odom
     voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
 
 
 def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
-               first: dict[str, int], want: Want, static: dict, track: PoseTrack) -> SliceOut:
+               first: dict[str, int], want: Want, tf: TfBuffer, map_t: dict[str, NDArray]) -> SliceOut:
     """The targeted second pass over [start, stop) (a process-pool job): decode the kept
     messages in ``want``, write images and maps into their chunks; return map poses and
     voxel points."""
@@ -285,7 +286,7 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
                 for s_i in targets:
                     runs.put(images, s_i, img, (c_i,))
             elif role == "voxel_map":
-                pts = voxel_points(msg, cfg, track)
+                pts = voxel_points(msg, cfg, tf)
                 for v in targets:
                     out.voxels[v] = pts
             else:
@@ -294,9 +295,9 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
                 arr = maps[r]
                 if g.shape != tuple(arr["elevation_m"].shape[1:]):
                     raise DecodeError(f"{topic}: GridMap size changed from {tuple(arr['elevation_m'].shape[1:])} to {g.shape}")
-                center, yaw = map_to_odom(cfg, static, g.center_m, g.yaw_rad, g.frame_id)
+                pose = map_to_odom(cfg, tf, g.center_m, g.yaw_rad, g.frame_id, int(map_t[r][targets[0]]))
                 for k_i in targets:
                     for name, layer in zip(MAP_LAYERS, layer_names):
                         runs.put(arr[name], k_i, g.layers[layer])
-                    out.maps[(r, k_i)] = (center, yaw)
+                    out.maps[(r, k_i)] = pose
     return out

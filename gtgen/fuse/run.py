@@ -43,11 +43,15 @@ def zarr_map_source(drive, rng: str, res: float) -> MapSource:
     t = g["t_ns"][:]
     centers = g["center_odom_m"][:]
     yaws = g["yaw_odom_rad"][:]
+    z0 = g["z_offset_m"][:]
     map_res = float(g.attrs["resolution_m"])
     arrs = tuple(ChunkFiles(g[name]) for name in MAP_LAYERS)
 
     def load(i: int):
-        return to_lattice(int(t[i]), tuple(a.read(i) for a in arrs), centers[i], float(yaws[i]), map_res, res)
+        elev, risk, conf = (a.read(i) for a in arrs)
+        if z0[i]:
+            elev += np.float32(z0[i])
+        return to_lattice(int(t[i]), (elev, risk, conf), centers[i], float(yaws[i]), map_res, res)
 
     return MapSource(t, load)
 

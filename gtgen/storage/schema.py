@@ -48,6 +48,7 @@ for _r in RANGES:
         ArraySpec(f"maps/{_r}/confidence", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer confidence"),
         ArraySpec(f"maps/{_r}/center_odom_m", "float64", "(M_r, 3)", "m", "odom", "-", "grid centre (GridMap info.pose position)"),
         ArraySpec(f"maps/{_r}/yaw_odom_rad", "float64", "(M_r,)", "rad", "odom", "-", "grid yaw (GridMap info.pose orientation)"),
+        ArraySpec(f"maps/{_r}/z_offset_m", "float64", "(M_r,)", "m", "odom", "-", "added to the map's elevations to put them in odom: its frame's height at the grid centre (0 in odom)"),
     ]
 
 _DRIVE: list[ArraySpec] = [
@@ -76,11 +77,11 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("voxel_maps/t_ns", "int64", "(V,)", "ns", "-", "-", "stamps of the voxel maps some sample uses"),
     ArraySpec("voxel_maps/n_points", "int64", "(V,)", "-", "-", "-", "points of each voxel map (at most shards.max_voxel_points)"),
     ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
+    ArraySpec("samples/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics at each image's stamp (TF)"),
     ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
-    ArraySpec("calib/T_base_cam", "float64", "(4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics from tf_static"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 2, tuple(_DRIVE), "gtgen extract BAG")
+DRIVE = StoreFormat("gtgen-drive", 3, tuple(_DRIVE), "gtgen extract BAG")
 
 
 # -- the fused store (``gtgen fuse``) ------------------------------------------------------
