@@ -55,3 +55,41 @@ def test_direct_mcap_reader_matches_mcap_library(tmp_path, compression):
 def test_direct_mcap_reader_on_a_synth_bag(drive_dir):
     topics = {"/xracer/odometry", "/xracer/map/micro", "/cam_front/image/compressed"}
     assert _direct_messages(drive_dir / "drive.mcap", topics, None, None) == _lib_messages(drive_dir / "drive.mcap", topics, None, None)
+
+
+def _rosbags_messages(path, ros1=True):
+    from rosbags.highlevel import AnyReader
+
+    from gtgen.bag.msgdefs import typestore
+
+    with AnyReader([path], default_typestore=typestore(ros1)) as r:
+        return [(t, c.topic, bytes(raw)) for c, t, raw in r.messages()]
+
+
+def test_ros1_bag_cut_short_is_read_up_to_the_cut(drive_dir, tmp_path):
+    """The walker reads a whole bag as rosbags does, and a bag cut anywhere after its first
+    chunk as rosbags reads the messages of the chunks before the cut."""
+    from gtgen.bag.rosbag1 import Ros1File
+
+    full = drive_dir / "drive.bag"
+    ref = _rosbags_messages(full)
+    whole = Ros1File.open(full)
+    assert whole.lost_bytes == 0
+    topics = {c.topic for c in whole.connections.values()}
+    got = [(t, topic, bytes(d)) for t, topic, _, d in whole.messages(topics, None, None)]
+    assert sorted(got) == sorted(ref) and [m[0] for m in got] == sorted(m[0] for m in got)
+    data = full.read_bytes()
+    first = whole.chunks[0].offset + whole.chunks[0].length
+    for cut in np.random.default_rng(1).integers(first + 1, len(data), 4):
+        bag = tmp_path / "cut.bag"
+        bag.write_bytes(data[:cut])
+        rf = Ros1File.open(bag)
+        assert 0 < rf.lost_bytes < len(data) - first
+        n = len(rf.chunks)
+        assert rf.chunks == whole.chunks[:n] and all(c.offset + c.length <= cut for c in rf.chunks)
+        assert n == len(whole.chunks) or whole.chunks[n].offset + whole.chunks[n].length > cut  # every complete chunk
+        got = [(t, topic, bytes(d)) for t, topic, _, d in rf.messages(topics, None, None)]
+        chans = {cid: (c.topic, c.name) for cid, c in whole.connections.items()}
+        with open(full, "rb") as f:
+            want = [(t, topic, bytes(d)) for ref_ in whole.chunks[:n] for t, topic, _, d in whole._chunk_messages(f, ref_, chans)]
+        assert got and sorted(got) == sorted(want) and [m[0] for m in got] == sorted(m[0] for m in got)

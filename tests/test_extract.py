@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -140,7 +141,7 @@ def test_circular_buffer_maps_decode_to_the_same_grid(drive_dir):
     (lambda d, t: t / "missing.mcap", InputNotFoundError, "does not exist"),
     (lambda d, t: _zero(t / "empty.mcap"), BagError, "empty (0 bytes)"),
     (lambda d, t: _truncate(d / "drive.mcap", t / "cut.mcap", 300), BagError, "truncated inside its header or first chunk"),
-    (lambda d, t: _truncate(d / "drive.bag", t / "cut.bag"), BagError, "cut.bag"),
+    (lambda d, t: _truncate(d / "drive.bag", t / "cut.bag", 300), BagError, "truncated inside its header or first chunk"),
     (lambda d, t: _zero(t / "x.txt"), BagError, "suffix '.txt'"),
 ])
 def test_bad_bags_raise_clear_errors(drive_dir, tmp_path, cfg, make, err, needle):
@@ -358,3 +359,56 @@ def test_truncated_bag_at_seeded_offsets_never_a_traceback_or_a_hang(drive_dir, 
             bag.unlink()
     finally:
         signal.signal(signal.SIGALRM, old)
+
+
+@pytest.fixture(scope="module")
+def bag_store(drive_dir, tmp_path_factory, cfg):
+    out = tmp_path_factory.mktemp("bag") / "drive.zarr"
+    run_extract([drive_dir / "drive.bag"], out, cfg)
+    return out
+
+
+@pytest.mark.parametrize("name", ["drive.mcap", "drive.bag"])
+def test_a_bag_cut_short_gives_the_first_samples_of_the_whole_drive(drive_dir, drive_store, bag_store, tmp_path, cfg, name):
+    """Cut at 10 seeded offsets after the first chunk: extract succeeds, reports the lost
+    bytes, and every sample whose data all lie before the cut equals the whole drive's."""
+    from gtgen.bag.mcap import McapFile
+    from gtgen.bag.rosbag1 import Ros1File
+
+    full_path = drive_dir / name
+    whole = (McapFile if name.endswith(".mcap") else Ros1File).open(full_path)
+    first = min(c.offset + c.length for c in whole.chunks)
+    data = full_path.read_bytes()
+    full = open_drive(drive_store if name.endswith(".mcap") else bag_store)
+    ft = full["samples/t_ns"][:]
+    tol = int(cfg.extract.pose_tolerance_s * 1e9)
+    needed = np.max(np.column_stack([
+        full["samples/image_t_ns"][:].max(axis=1), full["samples/voxel_t_ns"][:], ft + tol,
+        full["maps/micro/t_ns"][:][full["samples/map_index_micro"][:]] + 100_000_000,  # maps are recorded after their stamp
+        full["maps/short/t_ns"][:][full["samples/map_index_short"][:]] + 100_000_000,
+    ]), axis=1)
+    checked = 0
+    for cut in np.random.default_rng(10).integers(first + 1, len(data), 10):
+        bag = tmp_path / f"cut{Path(name).suffix}"
+        bag.write_bytes(data[:cut])
+        with BagSet([bag]) as bags:
+            t_last = bags.time_range()[1] - 1
+        res = run_extract([bag], tmp_path / "cut.zarr", cfg, workers=1)
+        assert any("cut short" in w for w in res.warnings)
+        g = open_drive(tmp_path / "cut.zarr")
+        gt = g["samples/t_ns"][:]
+        safe = np.nonzero(needed < t_last)[0]
+        assert np.isin(ft[safe], gt).all(), (cut, len(safe), len(gt))
+        assert (gt[~np.isin(gt, ft)] > t_last - 1_000_000_000).all()  # a sample the whole drive lacks: only at the cut
+        for k in safe:
+            j = int(np.nonzero(gt == ft[k])[0][0])
+            np.testing.assert_array_equal(g["samples/images"][j], full["samples/images"][k])
+            np.testing.assert_array_equal(g["samples/pos_odom_m"][j], full["samples/pos_odom_m"][k])
+            for r in ("micro", "short"):
+                np.testing.assert_array_equal(g[f"maps/{r}/elevation_m"][int(g[f"samples/map_index_{r}"][j])],
+                                              full[f"maps/{r}/elevation_m"][int(full[f"samples/map_index_{r}"][k])])
+            v, w = int(g["samples/voxel_index"][j]), int(full["samples/voxel_index"][k])
+            np.testing.assert_array_equal(g["voxel_maps/points_odom_m"][v], full["voxel_maps/points_odom_m"][w])
+        checked += len(safe)
+        shutil.rmtree(tmp_path / "cut.zarr")
+    assert checked > 2 * len(ft)  # most cuts leave many samples to compare

@@ -16,22 +16,21 @@ every complete chunk before the cut is used and the bytes after it are reported 
 
 Why by hand: the mcap library parses every record through a small-read stream wrapper,
 about a quarter of the time of a pass over a bag. Here each chunk is read with one read
-and one decompression, and its records are split with struct on a memoryview (no copies).
-Chunks may overlap in log time (recorders write in arrival order), so they are taken in
-order of their first log time and their messages merged on a heap, released once no later
-chunk can hold an earlier message (as the mcap library does).
+and one decompression, and its records are split with struct on a memoryview (no copies);
+chunks that overlap in log time are merged as the mcap library does
+(``chunked.in_time_order``).
 
 Oracle: ``tests/test_bag_reader.py`` compares every message with the mcap library's.
 """
 
 from __future__ import annotations
 
-import heapq
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gtgen.bag.chunked import ChunkRef, in_time_order
 from gtgen.bag.msgdefs import normalize_msgtype
 from gtgen.errors import BagError
 
@@ -51,17 +50,6 @@ class Schema:
     name: str
     encoding: str
     data: bytes
-
-
-@dataclass(frozen=True)
-class ChunkRef:
-    """Where one chunk lies in the file, its log-time span and the channels it holds."""
-
-    offset: int
-    length: int
-    t_start: int
-    t_end: int
-    channels: frozenset[int]
 
 
 @dataclass
@@ -184,33 +172,22 @@ class McapFile:
         [start, stop), in log-time order (ties in file order)."""
         chans = {cid: (topic, self.schemas[sid].name if sid in self.schemas else "")
                  for cid, (topic, sid) in self.channels.items() if topic in topics}
-        lo = -1 if start is None else start
-        hi = 1 << 64 if stop is None else stop
-        refs = sorted((c for c in self.chunks if c.t_end >= lo and c.t_start < hi and not chans.keys().isdisjoint(c.channels)),
-                      key=lambda c: (c.t_start, c.offset))
-        heap: list = []
-        seq = 0
         with open(self.path, "rb") as f:
-            for ref in refs:
-                while heap and heap[0][0] < ref.t_start:
-                    t, _, topic, name, data = heapq.heappop(heap)
-                    yield t, topic, name, data
-                data = self._read_chunk(f, ref)
-                p, end = 0, len(data)
-                while p < end:
-                    op, length = _REC.unpack_from(data, p)
-                    p += 9
-                    if op == OP_MESSAGE:
-                        cid, _, t, _ = _MSG.unpack_from(data, p)
-                        if cid in chans and lo <= t < hi:
-                            heapq.heappush(heap, (t, seq, *chans[cid], data[p + 22 : p + length]))
-                            seq += 1
-                    p += length
-                if p != end:
-                    raise BagError(f"MCAP chunk at byte {ref.offset} of '{self.path}' has a record running past its end")
-        while heap:
-            t, _, topic, name, data = heapq.heappop(heap)
-            yield t, topic, name, data
+            yield from in_time_order(self.chunks, set(chans), start, stop, lambda ref: self._chunk_messages(f, ref, chans))
+
+    def _chunk_messages(self, f, ref: ChunkRef, chans: dict[int, tuple[str, str]]) -> Iterator[tuple[int, str, str, memoryview]]:
+        data = self._read_chunk(f, ref)
+        p, end = 0, len(data)
+        while p < end:
+            op, length = _REC.unpack_from(data, p)
+            p += 9
+            if op == OP_MESSAGE:
+                cid, _, t, _ = _MSG.unpack_from(data, p)
+                if cid in chans:
+                    yield (t, *chans[cid], data[p + 22 : p + length])
+            p += length
+        if p != end:
+            raise BagError(f"MCAP chunk at byte {ref.offset} of '{self.path}' has a record running past its end")
 
     def _read_chunk(self, f, ref: ChunkRef) -> memoryview:
         f.seek(ref.offset)

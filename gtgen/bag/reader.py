@@ -52,11 +52,97 @@ def _first_line(err: BaseException) -> str:
     return str(err).splitlines()[0] if str(err) else type(err).__name__
 
 
+class _Rosbags:
+    """Bags read through rosbags' AnyReader (with their index)."""
+
+    def __init__(self, paths: list[Path], ros1: bool) -> None:
+        from rosbags.highlevel import AnyReader
+
+        self.paths = paths
+        self.reader = AnyReader(paths, default_typestore=typestore(ros1))
+        self.reader.open()
+
+    def close(self) -> None:
+        self.reader.close()
+
+    def topics(self) -> Iterator[tuple[str, str, int]]:
+        for c in self.reader.connections:
+            yield c.topic, c.msgtype, c.msgcount
+
+    def time_range(self) -> tuple[int, int] | None:
+        if not any(c.msgcount for c in self.reader.connections):
+            return None
+        return int(self.reader.start_time), int(self.reader.end_time)
+
+    def messages(self, topics: set[str], start: int | None, stop: int | None) -> Iterator[Message]:
+        conns = [c for c in self.reader.connections if c.topic in topics]
+        if not conns:
+            return
+        it = self.reader.messages(connections=conns, start=start, stop=stop)
+        while True:
+            try:
+                conn, t, raw = next(it)
+            except StopIteration:
+                return
+            except Exception as err:  # noqa: BLE001 - damaged chunks raise various errors
+                raise BagError(f"{_names(self.paths)} is truncated or corrupt: {_first_line(err)}") from err
+            try:
+                yield conn.topic, conn.msgtype, t, self.reader.deserialize(raw, conn.msgtype), None
+            except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
+                yield conn.topic, conn.msgtype, t, None, _first_line(err)
+
+
+class _Chunked:
+    """Bags read chunk by chunk by gtgen's own readers: bare MCAP files (``mcap``), and ROS 1
+    bags that rosbags cannot open because they were cut short (``rosbag1``)."""
+
+    def __init__(self, files: list, ros1: bool) -> None:
+        self.files = files
+        schemas = [s for f in files for s in (f.schemas.values() if isinstance(f, McapFile) else f.connections.values())]
+        store = typestore_of(schemas, ros1)
+        self.decode = store.deserialize_ros1 if ros1 else store.deserialize_cdr
+
+    def close(self) -> None:
+        self.files = []
+
+    def topics(self) -> Iterator[tuple[str, str, int]]:
+        for f in self.files:
+            if isinstance(f, McapFile):
+                for cid, (topic, sid) in f.channels.items():
+                    yield topic, f.schemas[sid].name if sid in f.schemas else "", f.counts.get(cid, 0)
+            else:
+                for cid, c in f.connections.items():
+                    yield c.topic, c.name, f.counts.get(cid, 0)
+
+    def time_range(self) -> tuple[int, int] | None:
+        spans = [f.time_range() for f in self.files]
+        return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
+
+    def messages(self, topics: set[str], start: int | None, stop: int | None) -> Iterator[Message]:
+        streams = [f.messages(topics, start, stop) for f in self.files]
+        try:
+            for t, topic, name, data in heapq.merge(*streams, key=lambda x: x[0]):
+                try:
+                    msg = self.decode(data, name)
+                except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
+                    yield topic, name, t, None, _first_line(err)
+                    continue
+                yield topic, name, t, msg, None
+        except BagError:
+            raise
+        except Exception as err:  # noqa: BLE001 - damaged chunks raise various errors
+            raise BagError(f"{_names([f.path for f in self.files])} is truncated or corrupt: {_first_line(err)}") from err
+
+
+def _names(paths: list[Path]) -> str:
+    return ", ".join(f"'{p}'" for p in paths)
+
+
 class BagSet:
     """One drive's bags, opened together and streamed as one time-ordered sequence.
 
     Use as a context manager. ``ros1`` tells which wire format the messages use;
-    ``warnings`` lists what was recovered from bags cut short.
+    ``warnings`` names the bags that were cut short and what of them was lost.
     """
 
     def __init__(self, paths: list[Path]) -> None:
@@ -66,70 +152,73 @@ class BagSet:
         for p in self.paths:
             _check_path(p)
         if len({p.suffix == ".bag" for p in self.paths}) > 1:
-            raise BagError("cannot mix ROS 1 .bag files with ROS 2 bags in one drive: " + ", ".join(map(str, self.paths)))
+            raise BagError("cannot mix ROS 1 .bag files with ROS 2 bags in one drive: " + _names(self.paths))
         self._bare_mcap = all(p.suffix == ".mcap" and p.is_file() for p in self.paths)
         if not self._bare_mcap and any(p.suffix == ".mcap" and p.is_file() for p in self.paths):
-            raise BagError("cannot mix bare .mcap files with other bags in one drive: " + ", ".join(map(str, self.paths)))
+            raise BagError("cannot mix bare .mcap files with other bags in one drive: " + _names(self.paths))
         ros1 = {profile(p) == "ros1msg" for p in self.paths} if self._bare_mcap else {self.paths[0].suffix == ".bag"}
         if len(ros1) > 1:
             raise BagError("cannot mix ros1msg and ros2msg .mcap files in one drive")
         self.ros1 = ros1.pop()
         self.warnings: list[str] = []
-        self._reader = None
-        self._mcaps: list[McapFile] = []
-        self._store = None
+        self._sources: list = []
 
     def __enter__(self) -> BagSet:
-        if self._bare_mcap:
-            self._mcaps = [McapFile.open(p) for p in self.paths]
-            self._store = typestore_of([s for m in self._mcaps for s in m.schemas.values()], self.ros1)
-            self.warnings = [f"bag '{m.path}' is cut short: read every complete chunk, {m.lost_bytes} bytes after the cut lost"
-                             for m in self._mcaps if m.lost_bytes]
-            return self
-        from rosbags.highlevel import AnyReader
-
         try:
-            self._reader = AnyReader(self.paths, default_typestore=typestore(self.ros1))
-            self._reader.open()
-        except Exception as err:  # noqa: BLE001 - rosbags raises many types on bad input
-            self._reader = None
-            raise BagError(f"cannot open {self._names()}: {_first_line(err)}") from err
+            if self._bare_mcap:
+                self._add_chunked([McapFile.open(p) for p in self.paths])
+            else:
+                self._open_rosbags()
+        except BaseException:
+            self.__exit__()
+            raise
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        if self._reader is not None:
-            self._reader.close()
-            self._reader = None
-        self._mcaps = []
+    def _open_rosbags(self) -> None:
+        try:
+            self._sources.append(_Rosbags(self.paths, self.ros1))
+            return
+        except Exception as err:  # noqa: BLE001 - rosbags raises many types on bad input
+            first = err
+        # ROS 1 bags cut short have no index: those rosbags refuses are walked instead
+        healthy, cut = [], []
+        for p in self.paths:
+            try:
+                _Rosbags([p], self.ros1).close()
+                healthy.append(p)
+            except Exception:  # noqa: BLE001 - any reason rosbags gives
+                cut.append(p)
+        if not cut or not all(p.suffix == ".bag" for p in cut):
+            raise BagError(f"cannot open {_names(self.paths)}: {_first_line(first)}") from first
+        from gtgen.bag.rosbag1 import Ros1File
 
-    def _names(self) -> str:
-        return ", ".join(f"'{p}'" for p in self.paths)
+        self._add_chunked([Ros1File.open(p) for p in cut])
+        if healthy:
+            self._sources.append(_Rosbags(healthy, self.ros1))
+
+    def _add_chunked(self, files: list) -> None:
+        self._sources.append(_Chunked(files, self.ros1))
+        self.warnings += [f"bag '{f.path}' is cut short: read every complete chunk, {f.lost_bytes} bytes after the cut lost"
+                          for f in files if f.lost_bytes]
+
+    def __exit__(self, *exc: object) -> None:
+        for s in self._sources:
+            s.close()
+        self._sources = []
 
     def topics(self) -> dict[str, TopicInfo]:
         """Return every topic of the bags with its type and count."""
         out: dict[str, TopicInfo] = {}
-
-        def add(topic: str, msgtype: str, n: int) -> None:
-            old = out.get(topic)
-            out[topic] = TopicInfo(msgtype, (old.count if old else 0) + n)
-
-        for m in self._mcaps:
-            for cid, (topic, sid) in m.channels.items():
-                add(topic, m.schemas[sid].name if sid in m.schemas else "", m.counts.get(cid, 0))
-        if self._reader is not None:
-            for c in self._reader.connections:
-                add(c.topic, c.msgtype, c.msgcount)
+        for s in self._sources:
+            for topic, msgtype, n in s.topics():
+                old = out.get(topic)
+                out[topic] = TopicInfo(msgtype, (old.count if old else 0) + n)
         return out
 
     def time_range(self) -> tuple[int, int]:
         """Return [start, stop) of the record times [ns] of all messages."""
-        if self._mcaps:
-            spans = [m.time_range() for m in self._mcaps]
-            return min(s[0] for s in spans), max(s[1] for s in spans)
-        assert self._reader is not None, "BagSet is not open"
-        if not any(c.msgcount for c in self._reader.connections):
-            return 0, 0
-        return int(self._reader.start_time), int(self._reader.end_time)
+        spans = [r for r in (s.time_range() for s in self._sources) if r is not None]
+        return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else (0, 0)
 
     def messages(self, topics: list[str], start: int | None = None, stop: int | None = None) -> Iterator[Message]:
         """Yield (topic, msgtype, record time [ns], message, error) in record-time order.
@@ -138,44 +227,8 @@ class BagSet:
         that fails to decode yields ``None`` and the error text, so callers can count
         decode failures instead of stopping.
         """
-        if self._mcaps:
-            yield from self._mcap_messages(set(topics), start, stop)
-            return
-        assert self._reader is not None, "BagSet is not open"
-        conns = [c for c in self._reader.connections if c.topic in set(topics)]
-        if not conns:
-            return
-        it = self._reader.messages(connections=conns, start=start, stop=stop)
-        while True:
-            try:
-                conn, t, raw = next(it)
-            except StopIteration:
-                return
-            except Exception as err:  # noqa: BLE001 - truncated chunks raise various errors
-                raise BagError(f"{self._names()} is truncated or corrupt: {_first_line(err)}") from err
-            try:
-                msg = self._reader.deserialize(raw, conn.msgtype)
-            except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
-                yield conn.topic, conn.msgtype, t, None, _first_line(err)
-                continue
-            yield conn.topic, conn.msgtype, t, msg, None
-
-    def _mcap_messages(self, wanted: set[str], start: int | None, stop: int | None) -> Iterator[Message]:
-        assert self._store is not None, "BagSet is not open"
-        decode = self._store.deserialize_ros1 if self.ros1 else self._store.deserialize_cdr
-        streams = [m.messages(wanted, start, stop) for m in self._mcaps]
-        try:
-            for t, topic, name, data in heapq.merge(*streams, key=lambda x: x[0]):
-                try:
-                    msg = decode(data, name)
-                except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
-                    yield topic, name, t, None, _first_line(err)
-                    continue
-                yield topic, name, t, msg, None
-        except BagError:
-            raise
-        except Exception as err:  # noqa: BLE001 - damaged chunks raise various errors
-            raise BagError(f"{self._names()} is truncated or corrupt: {_first_line(err)}") from err
+        streams = [s.messages(set(topics), start, stop) for s in self._sources]
+        yield from streams[0] if len(streams) == 1 else heapq.merge(*streams, key=lambda m: m[2])
 
 
 def stamp_ns(header: object) -> int:
