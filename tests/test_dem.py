@@ -10,7 +10,7 @@ import rasterio
 
 from conftest import REALDATA, needs_realdata
 from gtgen.dataset.run import run_dem_align
-from gtgen.dem.tiles import TileIndex, sample_bilinear
+from gtgen.dem.tiles import DemMosaic, TileIndex, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
 from gtgen.storage.stores import open_dataset
 
@@ -20,8 +20,8 @@ def test_real_dem_indexed_cropped_resampled(tmp_path):
     d = tmp_path / "dem"
     d.mkdir()
     (d / "dem.tif").symlink_to(REALDATA / "opengeos_lidar_dem_1m.tif")
-    idx = TileIndex.build(d, cache=tmp_path / "idx.json")
-    assert idx.crs == "EPSG:26915" and idx.res == pytest.approx(1.0)
+    idx = DemMosaic(TileIndex.build(d, cache=tmp_path / "idx.json"), "EPSG:26915")
+    assert idx.index.working_crs(-93.0, 45.0) == "EPSG:26915" and idx.res == pytest.approx(1.0)
     with rasterio.open(REALDATA / "opengeos_lidar_dem_1m.tif") as ds:
         ref = ds.read(1, masked=True).filled(np.nan)
         T = ds.transform
@@ -45,11 +45,12 @@ def test_real_dem_indexed_cropped_resampled(tmp_path):
 def test_mosaic_across_tile_borders_is_seamless(drive_dir, cfg):
     from gtgen.synth.run import load_world
 
-    idx = TileIndex.build(drive_dir / "dem")
-    assert len(idx.tiles) >= 2
+    index = TileIndex.build(drive_dir / "dem")
+    idx = DemMosaic(index, cfg.synth.crs)
+    assert len(index.tiles) >= 2
     # a window around an inner tile corner
-    xs = sorted({t.left for t in idx.tiles} | {t.right for t in idx.tiles})
-    ys = sorted({t.bottom for t in idx.tiles} | {t.top for t in idx.tiles})
+    xs = sorted({t.left for t in index.tiles} | {t.right for t in index.tiles})
+    ys = sorted({t.bottom for t in index.tiles} | {t.top for t in index.tiles})
     cx = xs[len(xs) // 2]
     cy = ys[len(ys) // 2]
     grid, (x0, y0, res) = idx.read(cx - 30, cy - 30, cx + 30, cy + 30)
@@ -110,7 +111,7 @@ def test_dem_without_overlap_crs_or_tiles(drive_dir, drive_store, fused_store, c
     with pytest.raises(DemError, match="has no CRS"):
         run_dem_align(drive_store, fused_store, nocrs, tmp_path / "b.zarr", cfg)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(DemError, match="no .tif tiles"):
+    with pytest.raises(DemError, match="has no raster tiles"):
         run_dem_align(drive_store, fused_store, tmp_path / "empty", tmp_path / "c.zarr", cfg)
     assert not any((tmp_path / n).exists() for n in ("a.zarr", "b.zarr", "c.zarr"))
 

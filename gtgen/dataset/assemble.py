@@ -20,7 +20,7 @@ from gtgen.config import RANGES, GtgenConfig
 from gtgen.dataset.split import split_of
 from gtgen.dataset.writer import write_block
 from gtgen.dem.place import dem_patch
-from gtgen.dem.tiles import TileIndex
+from gtgen.dem.tiles import DemMosaic, TileIndex
 from gtgen.geometry import grid_xy, make_transform, quat_to_matrix, quat_to_yaw, yaw_transform
 from gtgen.storage.chunks import ChunkFiles, Encoded
 from gtgen.storage.schema import FUSED
@@ -39,6 +39,7 @@ class Context:
     fused_path: str
     dem_dir: str
     index_cache: str
+    crs: str  # the drive's working CRS
     out_path: str
     cfg_json: dict
 
@@ -58,15 +59,17 @@ _OPEN: dict[tuple[str, str, str], tuple] = {}
 
 
 def _open(ctx: Context) -> tuple:
-    """Return (drive, fused chunk files, DEM index, config) of ``ctx``, opened once per worker."""
+    """Return (drive, fused chunk files, DEM mosaic, config) of ``ctx``, opened once per worker."""
     import zarr
 
     key = (ctx.drive_path, ctx.fused_path, ctx.out_path)
     if key not in _OPEN:
+        for opened in _OPEN.values():
+            opened[2].close()
         _OPEN.clear()
         fused = zarr.open_group(ctx.fused_path, mode="r")
         _OPEN[key] = (zarr.open_group(ctx.drive_path, mode="r"), {name: ChunkFiles(fused[name]) for name in FUSED_READ},
-                      TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache), update_cache=False),
+                      DemMosaic(TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache), update_cache=False), ctx.crs),
                       GtgenConfig.model_validate(ctx.cfg_json))
     return _OPEN[key]
 
@@ -86,7 +89,7 @@ def raw_min_z(points: NDArray, size: int, res: float) -> NDArray[np.float32]:
 def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.float32]]:
     """Build the kept samples ``items`` and write them from dataset index ``start``;
     return their voxel points in the target frame (appended in order by the caller)."""
-    drive, fused, index, cfg = _open(ctx)
+    drive, fused, dem, cfg = _open(ctx)
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
     vox_index, vox_n = drive["samples/voxel_index"][:], drive["voxel_maps/n_points"][:]
     # the small per-sample arrays: one zarr read each for the block's samples (only theirs:
@@ -102,7 +105,7 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
         pos, quat = rows["samples/pos_odom_m"][j], rows["samples/quat_odom_xyzw"][j]
         yaw = float(quat_to_yaw(quat))
         fused_k = {name: f.read(it.k) if name in FUSED_DECODED else f.encoded(it.k) for name, f in fused.items()}
-        sample = sample_arrays(fused_k, index, it.T_crs_target, grids)
+        sample = sample_arrays(fused_k, dem, it.T_crs_target, grids)
         v = vox_index[it.k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
@@ -135,14 +138,14 @@ def _inputs_and_meta(cfg: GtgenConfig, it: Kept, images: NDArray, t_ns: int, pos
     }
 
 
-def sample_arrays(fused: dict[str, NDArray | Encoded], index: TileIndex, T_crs_target: NDArray, grids: dict) -> dict[str, NDArray | Encoded]:
+def sample_arrays(fused: dict[str, NDArray | Encoded], dem_mosaic: DemMosaic, T_crs_target: NDArray, grids: dict) -> dict[str, NDArray | Encoded]:
     """Return one sample's label, X-Racer and DEM arrays from its fused arrays (by path;
     region and elevation as values, the rest as values or encoded chunks, which stay as
     they come: the dataset holds them unchanged)."""
     out: dict[str, NDArray | Encoded] = {}
     for r in RANGES:
         X, Y = grids[r]
-        dem = dem_patch(index, T_crs_target, X, Y)
+        dem = dem_patch(dem_mosaic, T_crs_target, X, Y)
         region = fused[f"fused/{r}/region"]
         elev = fused[f"fused/{r}/elevation_m"]
         unobs = region == codes.UNOBS

@@ -22,7 +22,8 @@ from gtgen.dataset.split import split_counts
 from gtgen.dataset.writer import ShardWriter
 from gtgen.dem.fit import PlanarFit
 from gtgen.dem.place import DrivePlacement
-from gtgen.dem.tiles import TileIndex
+from gtgen.dem.fit import gnss_lonlat
+from gtgen.dem.tiles import DemMosaic, TileIndex
 from gtgen.errors import DemError
 from gtgen.geometry import quat_to_yaw
 from gtgen.runtime.output import stage_output
@@ -69,14 +70,16 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
         drive, fused = open_drive(drive_path), open_fused(fused_path)
         dem_dir = dem_dir or default_dem_dir(cfg, drive)
         cache = out.parent / "dem-index.json"
-        with TileIndex.build(dem_dir, cache=cache) as index:
-            placement = DrivePlacement.of_drive(cfg, drive, fused, index, dem_dir)
+        index = TileIndex.build(dem_dir, cache=cache)
+        crs = index.working_crs(*gnss_lonlat(cfg, drive))
+        with DemMosaic(index, crs) as dem:
+            placement = DrivePlacement.of_drive(cfg, drive, fused, dem, dem_dir)
             W, H = drive.attrs["image_size"]
             writer = ShardWriter(tmp, int(drive["samples/t_ns"].shape[0]), cfg.grids.micro.size, cfg.grids.short.size, (H, W))
-            ctx = Context(str(drive_path), str(fused_path), str(dem_dir), str(cache), str(tmp), cfg.model_dump(mode="json"))
+            ctx = Context(str(drive_path), str(fused_path), str(dem_dir), str(cache), crs, str(tmp), cfg.model_dump(mode="json"))
             with Pool(workers) as pool:
                 fitness = _icp_chain(drive, fused, placement, writer, _Blocks(ctx, pool, writer))
-        n = writer.close(dataset_attrs(cfg, [drive_entry(drive_path, drive, index.crs, placement)], drive.attrs))
+        n = writer.close(dataset_attrs(cfg, [drive_entry(drive_path, drive, crs, placement)], drive.attrs))
         save_config(cfg, tmp / "gtgen-config.yaml")
         splits = split_counts(writer.root["meta/split"][:]) if n else {}
     return AlignResult(out, int(drive["samples/t_ns"].shape[0]), n, writer.rejected_counts(), placement.fit,

@@ -91,3 +91,12 @@ def gnss_fit(cfg: GtgenConfig, drive: Any, track: PoseTrack, crs: str) -> Planar
     enu = np.column_stack([E, N, alt])
     enu[~ok] = np.nan
     return fit_planar(pos, enu, var[:, :2].mean(axis=1), cfg.dem.gnss_outlier_m, cfg.dem.min_gnss_fixes)
+
+
+def gnss_lonlat(cfg: GtgenConfig, drive: Any) -> tuple[float, float]:
+    """Return the median (lon, lat) [deg] of a drive store's usable GNSS fixes."""
+    lat, lon, status = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/status"][:]
+    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon)
+    if not ok.any():
+        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
+    return float(np.median(lon[ok])), float(np.median(lat[ok]))

@@ -19,19 +19,19 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import PlanarFit, gnss_fit
 from gtgen.dem.icp import IcpResult, icp_4dof
-from gtgen.dem.tiles import TileIndex, sample_bilinear
+from gtgen.dem.tiles import DemMosaic, sample_bilinear
 from gtgen.errors import DemError
 from gtgen.geometry import grid_xy, invert, quat_to_yaw, yaw_transform
 
 MIN_ICP_POINTS = 100
 
 
-def dem_patch(index: TileIndex, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
+def dem_patch(dem: DemMosaic, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
     """Return DEM heights in the target frame at target cells (X, Y) (NaN where no DEM)."""
     R, t = T_crs_target[:3, :3], T_crs_target[:3, 3]
     E = R[0, 0] * X + R[0, 1] * Y + t[0]
     N = R[1, 0] * X + R[1, 1] * Y + t[1]
-    grid, origin = index.read(E.min() - margin, N.min() - margin, E.max() + margin, N.max() + margin)
+    grid, origin = dem.read(E.min() - margin, N.min() - margin, E.max() + margin, N.max() + margin)
     return sample_bilinear(grid, origin, E, N) - np.float32(t[2])
 
 
@@ -41,18 +41,18 @@ def _normals(Z: NDArray, res: float) -> NDArray:
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def _check_overlap(index: TileIndex, fit: PlanarFit, track: PoseTrack, dem_dir: Path) -> None:
+def _check_overlap(dem: DemMosaic, fit: PlanarFit, track: PoseTrack, dem_dir: Path) -> None:
     en = fit.apply_xy(track.pos[:, :2])
-    l, b, r, t = index.bounds()
+    l, b, r, t = dem.bounds()
     inside = (en[:, 0] > l) & (en[:, 0] < r) & (en[:, 1] > b) & (en[:, 1] < t)
     if not inside.any():
         raise DemError(
             f"DEM folder '{dem_dir}' does not cover the drive: drive spans E {en[:, 0].min():.0f}..{en[:, 0].max():.0f}, "
-            f"N {en[:, 1].min():.0f}..{en[:, 1].max():.0f} in {index.crs}; tiles span E {l:.0f}..{r:.0f}, N {b:.0f}..{t:.0f}"
+            f"N {en[:, 1].min():.0f}..{en[:, 1].max():.0f} in {dem.crs}; tiles span E {l:.0f}..{r:.0f}, N {b:.0f}..{t:.0f}"
         )
 
 
-def _dz_against_dem(index: TileIndex, fit: PlanarFit, X: NDArray, Y: NDArray, drive: Any, fused: Any, n: int = 24) -> float:
+def _dz_against_dem(dem: DemMosaic, fit: PlanarFit, X: NDArray, Y: NDArray, drive: Any, fused: Any, n: int = 24) -> float:
     """Return the median DEM height minus odom height over observed short cells of a few samples."""
     S = fused["fused/short/region"].shape[0]
     pos = drive["samples/pos_odom_m"][:]
@@ -65,7 +65,7 @@ def _dz_against_dem(index: TileIndex, fit: PlanarFit, X: NDArray, Y: NDArray, dr
         if not obs.any():
             continue
         T = yaw_transform(fit.tx, fit.ty, 0.0, fit.yaw) @ yaw_transform(*pos[k], yaw[k])
-        d = (dem_patch(index, T, X, Y) - el)[obs]  # both relative to the base z
+        d = (dem_patch(dem, T, X, Y) - el)[obs]  # both relative to the base z
         diffs.append(d[np.isfinite(d)])
     d = np.concatenate(diffs) if diffs else np.zeros(0)
     if len(d) < 50:
@@ -86,22 +86,22 @@ class Placement:
 class DrivePlacement:
     """A drive's placement in the DEM's CRS, refined sample by sample."""
 
-    def __init__(self, cfg: GtgenConfig, index: TileIndex, fit: PlanarFit, dz_dem: float) -> None:
-        self.cfg, self.index, self.fit, self.dz_dem = cfg, index, fit, dz_dem
+    def __init__(self, cfg: GtgenConfig, dem: DemMosaic, fit: PlanarFit, dz_dem: float) -> None:
+        self.cfg, self.dem, self.fit, self.dz_dem = cfg, dem, fit, dz_dem
         gs = cfg.grids.short
         self.X, self.Y = grid_xy(gs.size, gs.resolution_m)
         self.T_prior = yaw_transform(fit.tx, fit.ty, dz_dem, fit.yaw)  # T_crs_odom
 
     @classmethod
-    def of_drive(cls, cfg: GtgenConfig, drive: Any, fused: Any, index: TileIndex, dem_dir: Path) -> DrivePlacement:
-        """Fit the drive's odometry to GNSS in the DEM's CRS, check that the DEM covers it,
+    def of_drive(cls, cfg: GtgenConfig, drive: Any, fused: Any, dem: DemMosaic, dem_dir: Path) -> DrivePlacement:
+        """Fit the drive's odometry to GNSS in the working CRS, check that the DEM covers it,
         and estimate the odom -> DEM vertical offset."""
         track = PoseTrack(drive["poses/t_ns"][:], drive["poses/pos_odom_m"][:], drive["poses/quat_odom_xyzw"][:],
                           int(cfg.extract.pose_tolerance_s * 1e9))
-        fit = gnss_fit(cfg, drive, track, index.crs)
-        _check_overlap(index, fit, track, dem_dir)
+        fit = gnss_fit(cfg, drive, track, dem.crs)
+        _check_overlap(dem, fit, track, dem_dir)
         gs = cfg.grids.short
-        return cls(cfg, index, fit, _dz_against_dem(index, fit, *grid_xy(gs.size, gs.resolution_m), drive, fused))
+        return cls(cfg, dem, fit, _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive, fused))
 
     @property
     def geoid_offset_m(self) -> float:
@@ -121,7 +121,7 @@ class DrivePlacement:
         dc = self.cfg.dem
         T_odom_target = yaw_transform(*pos, yaw)
         T_crs_target = self.T_prior @ T_odom_target
-        dem = dem_patch(self.index, T_crs_target, self.X, self.Y)
+        dem = dem_patch(self.dem, T_crs_target, self.X, self.Y)
         src_mask = codes.observed(region) & np.isfinite(elev)
         tgt_mask = np.isfinite(dem)
         if not tgt_mask.any():

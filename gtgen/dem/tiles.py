@@ -1,12 +1,25 @@
-"""An index of a folder of DEM GeoTIFF tiles, and mosaicked window reads from it."""
+"""DEM tiles: an index of a folder of rasters in any CRS, and mosaicked reads in one working CRS.
+
+Any raster GDAL reads is a tile (GeoTIFF, VRT, SRTM ``.hgt``, ERDAS ``.img``, ...), also
+inside ``.zip`` archives (read through GDAL's ``/vsizip/``), in any CRS with known units:
+projected (USGS 3DEP 1 m: NAD83 / UTM) or geographic (the 1/3 arc-second seamless DEM:
+NAD83; SRTM, Copernicus: WGS84), with square or non-square pixels, several CRSs at once.
+A drive is placed in one working CRS (``TileIndex.working_crs``): the tiles' own when they
+share a projected one, else the UTM zone of the drive. ``DemMosaic`` reads a window in
+that CRS: tiles in another CRS (or not float32, or not north-up) through rasterio's
+``WarpedVRT`` (bilinear) onto the working lattice, mosaicked by ``rasterio.merge.merge``;
+heights in feet or other vertical units are converted to metres.
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import zipfile
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,14 +29,17 @@ from gtgen.runtime.output import write_atomic
 
 log = logging.getLogger(__name__)
 
-SUFFIXES = (".tif", ".tiff")
-INDEX_VERSION = 2
+SUFFIXES = (".tif", ".tiff", ".vrt", ".hgt", ".img", ".asc", ".dem", ".bil", ".flt", ".jp2")
+ARCHIVES = (".zip",)
+INDEX_VERSION = 3
+_FEET = {"ft", "foot", "feet", "us survey foot", "us_survey_foot", "foot_us", "us-ft", "ftus"}
 
 
 @dataclass(frozen=True)
 class Tile:
-    """One tile's header: file, bounds in its CRS [m], CRS, nodata and pixel size [m], and
-    the file's size [bytes] and mtime that the header cache is keyed on."""
+    """One tile's header: its GDAL path, bounds in its own CRS, CRS (WKT), nodata, pixel
+    size in CRS units, metres per height unit, and the file's size [bytes] and mtime that
+    the header cache is keyed on."""
 
     path: str
     left: float
@@ -32,45 +48,72 @@ class Tile:
     top: float
     crs: str
     nodata: float | None
-    res: float
+    res_x: float
+    res_y: float
+    z_to_m: float
+    direct: bool  # float32, north-up: read without a warp when it is in the working CRS
     file_bytes: int
     mtime_ns: int
 
 
-def _read_header(path: Path) -> Tile:
+def _z_to_m(ds: Any) -> float:
+    """Return the metres per height unit of a dataset (band unit, else a compound CRS's
+    vertical axis, else metres)."""
+    unit = (ds.units[0] or "").strip().lower() if ds.units else ""
+    if unit in _FEET:
+        return 0.3048006096012192 if "us" in unit else 0.3048
+    if unit in ("", "m", "metre", "metres", "meter", "meters"):
+        from pyproj import CRS
+
+        crs = CRS.from_wkt(ds.crs.to_wkt())
+        if crs.is_compound and len(crs.sub_crs_list) > 1:
+            axis = crs.sub_crs_list[1].axis_info
+            return float(axis[0].unit_conversion_factor) if axis else 1.0
+        return 1.0
+    raise DemError(f"DEM tile '{ds.name}' has heights in {unit!r}; expected metres or feet")
+
+
+def _read_header(gdal_path: str, file: Path) -> Tile:
     import rasterio
 
     try:
-        with rasterio.open(path) as ds:
+        with rasterio.open(gdal_path) as ds:
             if ds.crs is None:
-                raise DemError(f"DEM tile '{path}' has no CRS; expected a projected CRS such as EPSG:26910")
-            if not ds.crs.is_projected:
-                raise DemError(f"DEM tile '{path}' has CRS {ds.crs.to_string()} which is not projected; expected metres (e.g. UTM)")
+                raise DemError(f"DEM tile '{gdal_path}' has no CRS; expected a georeferenced raster (e.g. EPSG:26910 or EPSG:4269)")
+            if not (ds.crs.is_projected or ds.crs.is_geographic):
+                raise DemError(f"DEM tile '{gdal_path}' has a local CRS without a known unit or place on Earth "
+                               f"({ds.crs.to_string()[:60]}); expected a projected or geographic CRS")
             b = ds.bounds
-            res = abs(ds.transform.a)
-            if abs(abs(ds.transform.e) - res) > 1e-6 * res or ds.transform.b or ds.transform.d:
-                raise DemError(f"DEM tile '{path}' has non-square or rotated pixels; expected a north-up grid")
-            return Tile(str(path), b.left, b.bottom, b.right, b.top, ds.crs.to_string(),
-                        None if ds.nodata is None else float(ds.nodata), res, path.stat().st_size, path.stat().st_mtime_ns)
+            t = ds.transform
+            direct = ds.dtypes[0] == "float32" and t.b == 0 and t.d == 0 and t.e < 0
+            st = file.stat()
+            return Tile(gdal_path, b.left, b.bottom, b.right, b.top, ds.crs.to_wkt(), None if ds.nodata is None else float(ds.nodata),
+                        abs(t.a), abs(t.e), _z_to_m(ds), direct, st.st_size, st.st_mtime_ns)
     except DemError:
         raise
     except Exception as err:  # noqa: BLE001 - rasterio raises many types on bad files
-        raise DemError(f"DEM tile '{path}' cannot be read: {err}".splitlines()[0]) from err
+        raise DemError(f"DEM tile '{gdal_path}' cannot be read: {err}".splitlines()[0]) from err
+
+
+def _rasters(folder: Path) -> list[tuple[str, Path]]:
+    """Return (GDAL path, file) of every raster in ``folder`` and in its zip archives."""
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() in SUFFIXES:
+            out.append((str(p), p))
+        elif p.suffix.lower() in ARCHIVES:
+            with zipfile.ZipFile(p) as z:
+                out += [(f"/vsizip/{p}/{m}", p) for m in sorted(z.namelist()) if Path(m).suffix.lower() in SUFFIXES]
+    return out
 
 
 class TileIndex:
-    """The tiles of a DEM folder (one CRS), with a header cache beside the workspace."""
+    """The tiles of a DEM folder, with a header cache beside the workspace."""
 
     def __init__(self, tiles: list[Tile]) -> None:
         if not tiles:
-            raise DemError("the DEM folder has no GeoTIFF tiles")
-        crs = {t.crs for t in tiles}
-        if len(crs) > 1:
-            raise DemError(f"DEM tiles are in several CRS {sorted(crs)}; expected one")
+            raise DemError("the DEM folder has no raster tiles")
         self.tiles = tiles
-        self.crs = tiles[0].crs
-        self.res = min(t.res for t in tiles)
-        self._open: OrderedDict[str, object] = OrderedDict()
 
     @classmethod
     def build(cls, folder: Path, cache: Path | None = None, update_cache: bool = True) -> TileIndex:
@@ -78,9 +121,9 @@ class TileIndex:
         mtime, rewritten unless ``update_cache`` is False (a worker reading what its stage wrote)."""
         if not folder.is_dir():
             raise InputNotFoundError(f"DEM folder '{folder}' does not exist; pass --dem DIR or set dem.dir")
-        files = sorted(p for p in folder.iterdir() if p.suffix.lower() in SUFFIXES)
+        files = _rasters(folder)
         if not files:
-            raise DemError(f"DEM folder '{folder}' has no .tif tiles")
+            raise DemError(f"DEM folder '{folder}' has no raster tiles (looked for {', '.join(SUFFIXES + ARCHIVES)})")
         known: dict[str, Tile] = {}
         if cache is not None and cache.is_file():
             try:
@@ -90,11 +133,11 @@ class TileIndex:
             except (ValueError, KeyError, TypeError):
                 known = {}
         tiles = []
-        for f in files:
+        for gdal_path, f in files:
             st = f.stat()
-            t = known.get(str(f))
+            t = known.get(gdal_path)
             if t is None or t.file_bytes != st.st_size or t.mtime_ns != st.st_mtime_ns:
-                t = _read_header(f)
+                t = _read_header(gdal_path, f)
             tiles.append(t)
         if cache is not None and update_cache:
             try:
@@ -103,69 +146,117 @@ class TileIndex:
                 log.warning("cannot write the DEM index cache '%s': %s", cache, err)
         return cls(tiles)
 
+    def working_crs(self, lon_deg: float, lat_deg: float) -> str:
+        """Return the CRS a drive at (lon, lat) is placed in: the tiles' own when they all
+        share one projected CRS in metres that keeps distances true at the drive (within
+        0.1 %: UTM, state plane in metres; not web mercator), else the UTM zone of the drive
+        (on the tiles' datum when they share NAD83, else WGS84)."""
+        from pyproj import CRS, Proj
+        from pyproj.aoi import AreaOfInterest
+        from pyproj.database import query_utm_crs_info
+
+        crs = {t.crs for t in self.tiles}
+        first = CRS.from_wkt(next(iter(crs)))
+        if len(crs) == 1 and first.is_projected and first.axis_info[0].unit_conversion_factor == 1.0:
+            f = Proj(first).get_factors(lon_deg, lat_deg)
+            if max(abs(f.meridional_scale - 1), abs(f.parallel_scale - 1)) < 1e-3:
+                return first.to_string() if first.to_epsg() is None else f"EPSG:{first.to_epsg()}"
+        datums = {CRS.from_wkt(c).geodetic_crs.datum.name for c in crs}
+        datum = "NAD83" if len(datums) == 1 and "North American Datum 1983" in next(iter(datums)) else "WGS 84"
+        info = query_utm_crs_info(datum_name=datum, area_of_interest=AreaOfInterest(lon_deg, lat_deg, lon_deg, lat_deg))
+        if not info:
+            raise DemError(f"no UTM zone for the drive at lon {lon_deg:.4f}, lat {lat_deg:.4f} ({datum})")
+        return f"{info[0].auth_name}:{info[0].code}"
+
+
+class DemMosaic:
+    """Mosaicked reads of a TileIndex in the working CRS ``crs``, on one pixel lattice."""
+
+    def __init__(self, index: TileIndex, crs: str) -> None:
+        from pyproj import CRS
+        from rasterio.warp import transform_bounds
+
+        self.index, self.crs = index, crs
+        work = CRS.from_user_input(crs)
+        self._bounds, res = [], []
+        for t in index.tiles:
+            same = CRS.from_wkt(t.crs) == work
+            b = (t.left, t.bottom, t.right, t.top) if same else transform_bounds(t.crs, crs, t.left, t.bottom, t.right, t.top, densify_pts=21)
+            self._bounds.append(b)
+            n_x = max(1, round((t.right - t.left) / t.res_x))
+            res.append((b[2] - b[0]) / n_x)
+        self.res = float(min(res))
+        anchor = next((t for t, b in zip(index.tiles, self._bounds) if CRS.from_wkt(t.crs) == work and t.direct), None)
+        self._anchor = (anchor.left, anchor.top) if anchor else (0.0, 0.0)
+        self._same = [CRS.from_wkt(t.crs) == work for t in index.tiles]
+        self._open: OrderedDict[int, Any] = OrderedDict()
+
     def bounds(self) -> tuple[float, float, float, float]:
-        """Return the union bounds (left, bottom, right, top) of every tile."""
-        return (min(t.left for t in self.tiles), min(t.bottom for t in self.tiles),
-                max(t.right for t in self.tiles), max(t.top for t in self.tiles))
+        """Return the union bounds (left, bottom, right, top) of every tile in the working CRS."""
+        b = np.array(self._bounds)
+        return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
 
-    def overlapping(self, left: float, bottom: float, right: float, top: float) -> list[Tile]:
-        """Return the tiles that intersect the box."""
-        return [t for t in self.tiles if t.left < right and t.right > left and t.bottom < top and t.top > bottom]
-
-    def _dataset(self, path: str):
+    def _dataset(self, i: int) -> Any:
+        """Return tile ``i`` as a float32 north-up dataset on the working lattice."""
+        ds = self._open.get(i)
+        if ds is not None:
+            self._open.move_to_end(i)
+            return ds
         import rasterio
+        from affine import Affine
+        from rasterio.enums import Resampling
+        from rasterio.vrt import WarpedVRT
 
-        ds = self._open.get(path)
-        if ds is None:
-            ds = rasterio.open(path)
-            self._open[path] = ds
-            if len(self._open) > 16:
-                self._open.popitem(last=False)[1].close()
+        t = self.index.tiles[i]
+        src = rasterio.open(t.path)
+        if self._same[i] and t.direct and abs(t.res_x - self.res) < 1e-9 * self.res and abs(t.res_y - self.res) < 1e-9 * self.res:
+            ds = (src,)
         else:
-            self._open.move_to_end(path)
+            x0, y0 = self._snap(self._bounds[i][0], self._bounds[i][3])
+            w = int(np.ceil((self._bounds[i][2] - x0) / self.res)) + 1
+            h = int(np.ceil((y0 - self._bounds[i][1]) / self.res)) + 1
+            vrt = WarpedVRT(src, crs=self.crs, transform=Affine(self.res, 0, x0, 0, -self.res, y0), width=w, height=h,
+                            resampling=Resampling.bilinear, dtype="float32", nodata=np.nan, src_nodata=t.nodata, tolerance=0.01)
+            ds = (vrt, src)
+        self._open[i] = ds
+        if len(self._open) > 16:
+            for d in self._open.popitem(last=False)[1]:
+                d.close()
         return ds
 
-    def __enter__(self) -> TileIndex:
+    def _snap(self, left: float, top: float) -> tuple[float, float]:
+        ax, ay = self._anchor
+        return ax + np.floor((left - ax) / self.res) * self.res, ay - np.floor((ay - top) / self.res) * self.res
+
+    def close(self) -> None:
+        """Close every open tile."""
+        for ds in self._open.values():
+            for d in ds:
+                d.close()
+        self._open.clear()
+
+    def __enter__(self) -> DemMosaic:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self) -> None:
-        """Close every open tile."""
-        for ds in self._open.values():
-            ds.close()
-        self._open.clear()
-
     def read(self, left: float, bottom: float, right: float, top: float) -> tuple[NDArray[np.float32], tuple[float, float, float]]:
-        """Return the mosaic over the box (NaN where no tile or nodata) and (x0, y0, res) of
-        its upper-left corner, rows running south. Only the needed windows are read."""
-        from rasterio.windows import from_bounds
+        """Return the mosaic over the box, heights in metres (NaN where no tile or nodata),
+        and (x0, y0, res) of its upper-left corner, rows running south."""
+        from rasterio.merge import merge
 
         res = self.res
-        # the output grid is on the pixel lattice of the tiles (USGS tiles share one)
-        ax, ay = self.tiles[0].left, self.tiles[0].top
-        x0 = ax + np.floor((left - ax) / res) * res
-        y0 = ay - np.floor((ay - top) / res) * res
-        w = int(np.ceil((right - x0) / res))
-        h = int(np.ceil((y0 - bottom) / res))
+        x0, y0 = self._snap(left, top)
+        w, h = int(np.ceil((right - x0) / res)), int(np.ceil((y0 - bottom) / res))
         out = np.full((h, w), np.nan, np.float32)
-        for t in self.overlapping(x0, y0 - h * res, x0 + w * res, y0):
-            ds = self._dataset(t.path)
-            # the part of our grid this tile covers, in whole tile pixels
-            l, b = max(x0, t.left), max(y0 - h * res, t.bottom)
-            r, tp = min(x0 + w * res, t.right), min(y0, t.top)
-            if r <= l or tp <= b:
-                continue
-            win = from_bounds(l, b, r, tp, transform=ds.transform).round_offsets().round_lengths()
-            data = ds.read(1, window=win, masked=True).astype(np.float32).filled(np.nan)
-            if t.res != res:
-                raise DemError(f"DEM tiles mix pixel sizes ({t.res} m and {res} m); expected one")
-            c0 = int(round((l - x0) / res))
-            r0 = int(round((y0 - tp) / res))
-            hh, ww = min(data.shape[0], h - r0), min(data.shape[1], w - c0)
-            block = out[r0 : r0 + hh, c0 : c0 + ww]
-            np.copyto(block, data[:hh, :ww], where=np.isnan(block))
+        box = (x0, y0 - h * res, x0 + w * res, y0)
+        hits = [i for i, b in enumerate(self._bounds) if b[0] < box[2] and b[2] > box[0] and b[1] < box[3] and b[3] > box[1]]
+        for scale in sorted({self.index.tiles[i].z_to_m for i in hits}):
+            group = [self._dataset(i)[0] for i in hits if self.index.tiles[i].z_to_m == scale]
+            data, _ = merge(group, bounds=box, res=res, nodata=np.nan, dtype="float32")
+            grid = data[0, :h, :w].astype(np.float32) * np.float32(scale)
+            np.copyto(out, grid, where=np.isnan(out))
         out[out < -1e4] = np.nan  # nodata spelled as a huge negative number without a nodata tag
         return out, (float(x0), float(y0), float(res))
 
