@@ -49,3 +49,16 @@ def test_bad_config_is_one_clear_line(tmp_path: Path, text: str, needle: str):
 def test_missing_config_file():
     with pytest.raises(InputNotFoundError, match="does not exist"):
         load_config(Path("/nonexistent/x.yaml"))
+
+
+@pytest.mark.parametrize("over, needle", [
+    ({"topics": {"map_short": "/xracer/map/micro"}}, "topics.map_micro and topics.map_short"),
+    ({"topics": {"cameras": {"left": {"image": "/cam_front/image/compressed", "info": "/cam_left/camera_info"}}}},
+     "topics.cameras.front.image and topics.cameras.left.image"),
+    ({"topics": {"gnss": "/tf"}}, "topics.gnss and topics.tf"),
+    ({"topics": {"layers": {"risk": "elevation"}}}, "topics.layers names"),
+])
+def test_one_topic_in_two_roles_is_a_one_line_error(over, needle):
+    with pytest.raises(ConfigError) as exc:
+        build_config(over)
+    assert needle in str(exc.value) and "\n" not in str(exc.value)

@@ -150,3 +150,18 @@ def test_tf_buffer_chains_interpolates_and_refuses_to_extrapolate():
     assert tf.lookup("cam", "nowhere", q)[1].sum() == 0 and "no TF path" in tf.why_not("cam", "nowhere")
     # a wheel's edge connects no frame of the data: a slice need not keep it
     assert relevant_edges([("odom", "base"), ("base", "wheel")], [("base", "cam")], {"odom", "cam"}) == {("odom", "base")}
+
+
+def test_a_topic_whose_frame_tf_never_connects_fails_naming_the_edge(drive_dir, tmp_path, cfg):
+    def edit(topic, t, msg):
+        if topic == "/xracer/map/short":
+            msg.header.frame_id = "lidar_mast"  # no TF edge reaches it
+        yield t, msg
+
+    bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "lost.mcap", edit)
+    from gtgen.errors import TopicError
+
+    with pytest.raises(TopicError) as exc:
+        run_extract([bag], tmp_path / "lost.zarr", cfg, workers=1)
+    msg = str(exc.value)
+    assert "/xracer/map/short" in msg and "'lidar_mast'" in msg and "no TF path" in msg and "\n" not in msg

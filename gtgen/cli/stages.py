@@ -75,15 +75,16 @@ def extract(
     from rich.table import Table
 
     t = Table(title="gtgen extract: topics")
-    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "record-header max s"):
+    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "dropped", "record-header max s"):
         t.add_column(col)
     for s in res.topics:
         t.add_row(s["topic"], s["role"], str(s["count"]), str(s["rate_hz"]), str(s["max_gap_s"]),
                   str(s["decode_failures"]) + (f" ({s['first_error'][:40]})" if s["first_error"] else ""),
-                  str(s["record_minus_header_max_s"]))
+                  ", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "0", str(s["record_minus_header_max_s"]))
     console().print(t)
     rows: list[tuple[str, Any]] = [
         ("store", res.store),
+        ("poses", res.poses),
         ("candidates", res.n_candidates),
         ("samples kept", res.n_samples),
     ]
@@ -162,6 +163,7 @@ def dem_align(
     rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
     rows += [(f"  split {k}", v) for k, v in res.split_counts.items()]
     rows += [
+        ("working CRS", res.crs),
         ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
         ("vertical offset odom->DEM", f"{res.dz_dem_m:+.2f} m"),
         ("ellipsoid - DEM height (geoid)", f"{res.geoid_offset_m:+.2f} m"),

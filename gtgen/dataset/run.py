@@ -45,6 +45,7 @@ class AlignResult:
     fit: PlanarFit
     dz_dem_m: float
     geoid_offset_m: float
+    crs: str = ""  # the working CRS the drive was placed in
     fitness: list[float] = field(default_factory=list)
     split_counts: dict[str, int] = field(default_factory=dict)
 
@@ -83,7 +84,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
         save_config(cfg, tmp / "gtgen-config.yaml")
         splits = split_counts(writer.root["meta/split"][:]) if n else {}
     return AlignResult(out, int(drive["samples/t_ns"].shape[0]), n, writer.rejected_counts(), placement.fit,
-                       placement.dz_dem, placement.geoid_offset_m, fitness, splits)
+                       placement.dz_dem, placement.geoid_offset_m, crs, fitness, splits)
 
 
 def _icp_chain(drive: Any, fused: Any, placement: DrivePlacement, writer: ShardWriter, blocks: _Blocks) -> list[float]:
