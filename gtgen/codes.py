@@ -22,6 +22,10 @@ LOW_FITNESS = 21
 HIGH_RMSE = 22
 TOO_FEW_POINTS = 23
 NO_ALIGNMENT = 24
+LARGE_CORRECTION = 25
+DEM_DISAGREES = 26
+GNSS_DISAGREES = 27
+SUSPECT_TILE = 28
 
 REASONS: dict[int, str] = {
     OK: "ok",
@@ -36,6 +40,10 @@ REASONS: dict[int, str] = {
     HIGH_RMSE: "high_rmse: ICP inlier RMSE above dem.max_rmse_m",
     TOO_FEW_POINTS: "too_few_points: too few observed cells to align the DEM",
     NO_ALIGNMENT: "no_alignment: the drive could not be placed in the DEM CRS",
+    LARGE_CORRECTION: "large_correction: ICP moved the sample beyond dem.max_correction_* from its prior",
+    DEM_DISAGREES: "dem_disagrees: more than dem.max_disagreement of the observed ground differs from the aligned DEM",
+    GNSS_DISAGREES: "gnss_disagrees: the placement puts the window's GNSS fixes beyond dem.max_gnss_offset_m",
+    SUSPECT_TILE: "suspect_tile: most of the sample lies on DEM tiles the drive's observations contradict (set aside)",
 }
 
 

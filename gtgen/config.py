@@ -153,6 +153,18 @@ class SynthConfig(_Model):
     ditch_depth_m: float = Field(0.35, ge=0, description="ditch / rut depth [m]")
     trees_per_ha: float = Field(2.0, ge=0, description="tree density [1/ha]")
     rocks_per_ha: float = Field(6.0, ge=0, description="rock density [1/ha]")
+    canopy: bool = Field(False, description="X-Racer maps show the top of tree crowns and bushes where the lidar hits them (the DEM stays bare earth)")
+    bushes_per_ha: float = Field(0.0, ge=0, description="bush density (0.5-1.5 m tall, 1-2.5 m radius) [1/ha]")
+    gnss_jumps: int = Field(0, ge=0, description="GNSS multipath events: the fixes jump by gnss_jump_m for gnss_jump_s")
+    gnss_jump_m: float = Field(4.0, ge=0, description="size of a GNSS multipath jump [m]")
+    gnss_jump_s: float = Field(5.0, gt=0, description="duration of a GNSS multipath jump [s]")
+    gnss_outages: int = Field(0, ge=0, description="GNSS outages: no fix for gnss_outage_s")
+    gnss_outage_s: float = Field(20.0, gt=0, description="duration of a GNSS outage [s]")
+    terrain_changes: int = Field(0, ge=0, description="patches on the path where the terrain changed since the DEM survey (a cut, a berm)")
+    terrain_change_m: float = Field(1.5, description="height of a terrain change, + berm / - cut [m]")
+    terrain_change_radius_m: float = Field(12.0, gt=0, description="radius of a terrain change [m]")
+    dem_shifted_tile_m: float = Field(0.0, ge=0, description="one DEM tile under the drive is georeferenced this far off to the east [m] (0 = none)")
+    dem_wrong_tile: bool = Field(False, description="one DEM tile under the drive holds the terrain of a neighbouring area (1 km north)")
     workers: int = Field(2, ge=1, le=64, description="processes simulating in parallel (output does not depend on it)")
     circular_buffer_every: int = Field(3, ge=0, description="every n-th map has non-zero start indices (0 = never)")
 
@@ -201,6 +213,27 @@ class DemConfig(_Model):
     icp_max_points: int = Field(20000, ge=100, description="source points used by ICP (subsampled)")
     gnss_outlier_m: float = Field(4.0, gt=0, description="GNSS residual treated as an outlier [m]")
     min_gnss_fixes: int = Field(10, ge=3, description="fewest usable fixes for the drive fit")
+    vegetation_m: float = Field(0.5, gt=0, description="observed cells in blobs standing this far above the DEM surface (after the median offset) are vegetation: left out of ICP, its fitness and the disagreement [m]")
+    max_correction_m: float = Field(1.0, gt=0, description="reject a sample whose ICP moves it farther than this horizontally from its prior (the last kept placement carried by odometry) [m]")
+    max_correction_z_m: float = Field(0.5, gt=0, description="reject a sample whose ICP moves it farther than this vertically from its prior [m]")
+    max_correction_yaw_deg: float = Field(2.0, gt=0, description="reject a sample whose ICP turns it more than this from its prior [deg]")
+    drift_allowance: float = Field(0.01, ge=0, description="the correction allowed grows by this per metre travelled since the last kept sample (odometry drift) [m/m]")
+    disagreement_m: float = Field(0.5, gt=0, description="an observed ground cell disagrees with the aligned DEM when they differ by more than this [m]")
+    max_disagreement: float = Field(0.1, ge=0, le=1, description="reject a sample when more than this share of its observed ground cells disagree with the aligned DEM")
+    gnss_window_s: float = Field(10.0, gt=0, description="GNSS fixes within this of a sample's time judge its placement [s]")
+    min_window_fixes: int = Field(10, ge=1, description="fewest usable fixes in the window for the GNSS check (fewer: GNSS is not consulted)")
+    max_gnss_offset_m: float = Field(5.0, gt=0, description="reject a sample whose placement puts the window's fixes farther than this (median) from the track [m]")
+    judge_within_m: float = Field(20.0, gt=0, description="tiles are judged by samples whose prior is a kept placement at most this far back [m]")
+    max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree (a shifted tile, another place, a stale survey)")
+    min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before it is judged")
+
+
+class ReportConfig(_Model):
+    """What ``gtgen report`` calls a truly bad sample on a synthetic drive with truth."""
+
+    bad_horizontal_m: float | None = Field(None, gt=0, description="also call a sample bad when it is placed farther than this from the truth horizontally [m]; off (null) by default: on smooth ground an offset of a metre moves no label, and bad_fill_m counts the offsets that do")
+    bad_vertical_m: float = Field(0.15, gt=0, description="a sample placed farther than this from the truth vertically is bad [m]")
+    bad_fill_m: float = Field(0.15, gt=0, description="a sample is bad when its DEM fill would be this wrong on average over its short grid [m]: the DEM where the sample was put minus the true ground (misplaced on a slope, a shifted or wrong tile, changed terrain)")
 
 
 class ShardsConfig(_Model):
@@ -254,6 +287,7 @@ class GtgenConfig(_Model):
     fuse: FuseConfig = Field(default_factory=FuseConfig)
     dem: DemConfig = Field(default_factory=DemConfig)
     shards: ShardsConfig = Field(default_factory=ShardsConfig)
+    report: ReportConfig = Field(default_factory=ReportConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
 
 

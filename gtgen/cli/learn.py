@@ -10,6 +10,7 @@ import typer
 from gtgen.cli.app import WORKSPACE, ConfigOpt, app, console, fmt, read_yaml, table
 from gtgen.errors import GtgenError
 
+
 @app.command("train")
 def train_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),

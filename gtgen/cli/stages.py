@@ -10,6 +10,7 @@ import typer
 from gtgen.cli.app import WORKSPACE, ConfigOpt, app, console, load, table
 from gtgen.errors import GtgenError
 
+
 @app.command()
 def synth(
     out: Path = typer.Argument(..., help="output folder (created; must be empty or absent)"),

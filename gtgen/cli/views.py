@@ -9,6 +9,7 @@ import typer
 
 from gtgen.cli.app import WORKSPACE, app, table
 
+
 @app.command()
 def report(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
@@ -40,7 +41,7 @@ def report(
     if a:
         rows.append(("GNSS fit", f"rms {a['gnss_rms_m']:.2f} m, {a['gnss_outliers']} outliers; geoid offset {a['geoid_offset_m']:+.2f} m"))
     t = rep.truth
-    if t:
+    if t.get("micro"):
         for r in ("micro", "short"):
             for reg in ("obs_pc", "obs_f", "unobs"):
                 e = t[r][reg]
@@ -50,6 +51,18 @@ def report(
         d = t["dem_alignment"]
         rows.append(("DEM alignment error", f"horizontal median {d['horizontal_at_vehicle_m'].get('median')} m (max {d['horizontal_at_vehicle_m'].get('max')}), "
                                             f"at 50 m ahead median {d['horizontal_50m_ahead_m'].get('median')} m, vertical median {d['vertical_m'].get('median')} m (max {d['vertical_m'].get('max')})"))
+    rj = t.get("rejections")
+    if rj:
+        c = rj["confusion"]
+        rows.append(("truth: kept (good / bad)", f"{c['kept']['good']} / {c['kept']['bad']}"))
+        rows.append(("truth: rejected (good / bad)", f"{c['rejected']['good']} / {c['rejected']['bad']}"))
+        rows.append(("truth: bad rejected, good kept", f"{rj['bad_rejected_pct']} %, {rj['good_kept_pct']} %"))
+        rows += [(f"truth: reasons of rejected {cls}", ", ".join(f"{k} {v}" for k, v in r.items()) or "none") for cls, r in rj["reasons"].items()]
+        fe, ga = rj["fill_error_m"]["kept"], rj["gnss_fit_alone_error"]
+        if fe:
+            rows.append(("truth: DEM fill error of kept", f"median {fe['median']} m, max {fe['max']} m"))
+        rows.append(("truth: GNSS fit alone", f"horizontal median {ga['horizontal_m'].get('median')} m, vertical {ga['vertical_m'].get('median')} m, "
+                                              f"yaw {ga['yaw_deg'].get('median')} deg"))
     rows.append(("figures", ", ".join(str(p) for p in rep.figures)))
     table("gtgen report", rows)
 

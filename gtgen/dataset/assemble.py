@@ -21,7 +21,13 @@ from gtgen.dataset.split import split_of
 from gtgen.dataset.writer import write_block
 from gtgen.dem.place import dem_patch
 from gtgen.dem.tiles import DemMosaic, TileIndex
-from gtgen.geometry import grid_xy, make_transform, quat_to_matrix, quat_to_yaw, yaw_transform
+from gtgen.geometry import (
+    grid_xy,
+    make_transform,
+    quat_to_matrix,
+    quat_to_yaw,
+    yaw_transform,
+)
 from gtgen.storage.chunks import ChunkFiles, Encoded
 from gtgen.storage.schema import FUSED
 
@@ -40,6 +46,7 @@ class Context:
     dem_dir: str
     index_cache: str
     crs: str  # the drive's working CRS
+    exclude_tiles: tuple[int, ...]  # DEM tiles judged wrong: not used for filling
     out_path: str
     cfg_json: dict
 
@@ -53,6 +60,9 @@ class Kept:
     fitness: float
     rmse_m: float
     T_correction: NDArray
+    dem_disagreement: float
+    gnss_offset_m: float
+    vegetation_share: float
 
 
 _OPEN: dict[tuple[str, str, str], tuple] = {}
@@ -69,7 +79,8 @@ def _open(ctx: Context) -> tuple:
         _OPEN.clear()
         fused = zarr.open_group(ctx.fused_path, mode="r")
         _OPEN[key] = (zarr.open_group(ctx.drive_path, mode="r"), {name: ChunkFiles(fused[name]) for name in FUSED_READ},
-                      DemMosaic(TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache), update_cache=False), ctx.crs),
+                      DemMosaic(TileIndex.build(Path(ctx.dem_dir), cache=Path(ctx.index_cache), update_cache=False), ctx.crs,
+                                frozenset(ctx.exclude_tiles)),
                       GtgenConfig.model_validate(ctx.cfg_json))
     return _OPEN[key]
 
@@ -134,6 +145,9 @@ def _inputs_and_meta(cfg: GtgenConfig, it: Kept, images: NDArray, t_ns: int, pos
         "meta/icp_fitness": np.float32(it.fitness),
         "meta/icp_rmse_m": np.float32(it.rmse_m),
         "meta/icp_correction": np.array([C[0, 3], C[1, 3], C[2, 3], np.arctan2(C[1, 0], C[0, 0])], np.float32),
+        "meta/dem_disagreement": np.float32(it.dem_disagreement),
+        "meta/gnss_offset_m": np.float32(it.gnss_offset_m),
+        "meta/vegetation_share": np.float32(it.vegetation_share),
         "meta/split": np.uint8(split_of(*T[:2, 3], cfg.shards)),
     }
 

@@ -9,20 +9,21 @@ pool, and last the dataset's attributes.
 
 from __future__ import annotations
 
+import contextlib
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 
 from gtgen import __version__, codes
 from gtgen.config import GtgenConfig, save_config
 from gtgen.dataset.assemble import Context, Kept, build_block
 from gtgen.dataset.split import split_counts
 from gtgen.dataset.writer import ShardWriter
-from gtgen.dem.fit import PlanarFit
-from gtgen.dem.place import DrivePlacement
-from gtgen.dem.fit import gnss_lonlat
+from gtgen.dem.fit import PlanarFit, gnss_lonlat
+from gtgen.dem.place import DrivePlacement, Placement
 from gtgen.dem.tiles import DemMosaic, TileIndex
 from gtgen.errors import DemError
 from gtgen.geometry import quat_to_yaw
@@ -73,43 +74,84 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
         cache = out.parent / "dem-index.json"
         index = TileIndex.build(dem_dir, cache=cache)
         crs = index.working_crs(*gnss_lonlat(cfg, drive))
-        with DemMosaic(index, crs) as dem:
-            placement = DrivePlacement.of_drive(cfg, drive, fused, dem, dem_dir)
+        with contextlib.ExitStack() as stack:
+            placement = DrivePlacement.of_drive(cfg, drive, fused, stack.enter_context(DemMosaic(index, crs)), dem_dir)
+            stack.callback(lambda: placement.dem.close())
             W, H = drive.attrs["image_size"]
             writer = ShardWriter(tmp, int(drive["samples/t_ns"].shape[0]), cfg.grids.micro.size, cfg.grids.short.size, (H, W))
-            ctx = Context(str(drive_path), str(fused_path), str(dem_dir), str(cache), crs, str(tmp), cfg.model_dump(mode="json"))
+            rows, fitness = _icp_chain(drive, fused, placement)
+            suspect = placement.suspect_tiles()
+            if suspect:  # place the drive again without the tiles its observations contradict
+                placement = placement.without(suspect)
+                rows, fitness = _icp_chain(drive, fused, placement)
+            kept = _record(rows, writer, suspect, placement)
+            ctx = Context(str(drive_path), str(fused_path), str(dem_dir), str(cache), crs, tuple(sorted(suspect)), str(tmp),
+                          cfg.model_dump(mode="json"))
             with Pool(workers) as pool:
-                fitness = _icp_chain(drive, fused, placement, writer, _Blocks(ctx, pool, writer))
-        n = writer.close(dataset_attrs(cfg, [drive_entry(drive_path, drive, crs, placement)], drive.attrs))
+                blocks = _Blocks(ctx, pool, writer)
+                for item in kept:
+                    blocks.add(item)
+                blocks.finish()
+        entry = drive_entry(drive_path, drive, crs, placement, suspect_tiles=[index.tiles[i].path for i in sorted(suspect)])
+        n = writer.close(dataset_attrs(cfg, [entry], drive.attrs))
         save_config(cfg, tmp / "gtgen-config.yaml")
         splits = split_counts(writer.root["meta/split"][:]) if n else {}
     return AlignResult(out, int(drive["samples/t_ns"].shape[0]), n, writer.rejected_counts(), placement.fit,
                        placement.dz_dem, placement.geoid_offset_m, crs, fitness, splits)
 
 
-def _icp_chain(drive: Any, fused: Any, placement: DrivePlacement, writer: ShardWriter, blocks: _Blocks) -> list[float]:
+def _icp_chain(drive: Any, fused: Any, placement: DrivePlacement) -> tuple[list[tuple], list[float]]:
     """Place every fused sample in turn (each starts from the previous kept placement);
-    reject or hand it to ``blocks``; return the ICP fitness of every sample ICP ran on."""
+    return per sample (index, time, pose, Placement or fused reason) and the ICP fitness
+    of every sample ICP ran on."""
     t_s = drive["samples/t_ns"][:]
     pos = drive["samples/pos_odom_m"][:]
     yaw = quat_to_yaw(drive["samples/quat_odom_xyzw"][:])
+    dist = drive["samples/distance_m"][:]
     reason_f = fused["samples/reason"][:]
     region, elev = ChunkFiles(fused["fused/short/region"]), ChunkFiles(fused["fused/short/elevation_m"])
     fitness: list[float] = []
+    rows: list[tuple] = []
     for k in track(range(len(t_s)), "dem-align: samples"):
         if reason_f[k] != codes.OK:
-            writer.reject(int(t_s[k]), 0, int(reason_f[k]))
+            rows.append((k, int(t_s[k]), pos[k], yaw[k], int(reason_f[k])))
             continue
-        p = placement.place(k, pos[k], yaw[k], region.read(k), elev.read(k))
+        p = _place(placement, drive, fused, k, int(t_s[k]), pos[k], yaw[k], float(dist[k]), region, elev)
         if p.icp is not None:
             fitness.append(p.icp.fitness)
-        if p.reason != codes.OK:
-            icp = p.icp
-            writer.reject(int(t_s[k]), 0, p.reason, *((icp.fitness, icp.rmse_m) if icp is not None else ()))
-            continue
-        blocks.add(Kept(k, p.T_crs_target, p.icp.fitness, p.icp.rmse_m, p.icp.T))
-    blocks.finish()
-    return fitness
+        rows.append((k, int(t_s[k]), pos[k], yaw[k], p))
+    return rows, fitness
+
+
+def _place(placement: DrivePlacement, drive: Any, fused: Any, k: int, t: int, pos: Any, yaw: float, dist: float,
+           region: ChunkFiles | None = None, elev: ChunkFiles | None = None) -> Placement:
+    region = region or ChunkFiles(fused["fused/short/region"])
+    elev = elev or ChunkFiles(fused["fused/short/elevation_m"])
+    return placement.place(k, t, pos, yaw, region.read(k), elev.read(k), dist)
+
+
+def _record(rows: list[tuple], writer: ShardWriter, suspect: frozenset[int], placement: DrivePlacement) -> list[Kept]:
+    """Record the rejected samples; return the kept ones."""
+    kept = []
+    for k, t, pos, yaw, p in rows:
+        if not isinstance(p, Placement):
+            writer.reject(t, 0, p, pos_odom_m=pos, yaw_odom_rad=yaw)
+        elif p.reason != codes.OK:
+            writer.reject(t, 0, p.reason, pos_odom_m=pos, yaw_odom_rad=yaw, **_qa(p))
+        else:
+            s = p.signals
+            kept.append(Kept(k, p.T_crs_target, p.icp.fitness, p.icp.rmse_m, p.icp.T, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
+    return kept
+
+
+def _qa(p: Placement) -> dict[str, Any]:
+    """Return what the dataset records of a rejected sample's placement."""
+    if p.icp is None:  # no ICP ran: the placement it would have started from
+        return {} if p.T_crs_target is None else {"T_crs_target": p.T_crs_target}
+    C, s = p.icp.T, p.signals
+    return {"icp_fitness": p.icp.fitness, "icp_rmse_m": p.icp.rmse_m, "T_crs_target": p.T_crs_target,
+            "icp_correction": [C[0, 3], C[1, 3], C[2, 3], np.arctan2(C[1, 0], C[0, 0])],
+            "dem_disagreement": s["disagreement"], "gnss_offset_m": s["gnss_offset_m"], "vegetation_share": s["vegetation_share"]}
 
 
 class _Blocks:
@@ -142,11 +184,12 @@ class _Blocks:
             self.writer.add_block(self.futures.pop(0).result())
 
 
-def drive_entry(drive_path: Path, drive: Any, crs: str, placement: DrivePlacement, name: str | None = None) -> DriveEntry:
+def drive_entry(drive_path: Path, drive: Any, crs: str, placement: DrivePlacement, name: str | None = None,
+                suspect_tiles: list[str] | None = None) -> DriveEntry:
     """Return the dataset's record of one drive."""
     bags = [BagRef(**b) for b in drive.attrs.get("bags", [])]
     return DriveEntry(name=name or (Path(bags[0].path).stem if bags else drive_path.stem), drive_store=str(drive_path.resolve()),
-                      bags=bags, crs=crs, alignment=placement.alignment())
+                      bags=bags, crs=crs, alignment=placement.alignment(), suspect_tiles=suspect_tiles or [])
 
 
 def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], drive_attrs: Any, provenance: dict | None = None) -> DatasetAttrs:

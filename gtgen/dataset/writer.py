@@ -12,12 +12,25 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.runtime.progress import track
 from gtgen.storage.chunks import Encoded, RowAppender, compressors, encode_row
-from gtgen.storage.schema import DATASET, POINTS_PER_CHUNK, SAMPLE_ARRAYS, SAMPLES_PER_SHARD, DatasetAttrs
-from gtgen.storage.shards import chunks_like_gtgen, copy_samples, sample_layout, samples_per_shard, shard_file, write_shard
+from gtgen.storage.schema import (
+    DATASET,
+    POINTS_PER_CHUNK,
+    SAMPLE_ARRAYS,
+    SAMPLES_PER_SHARD,
+    DatasetAttrs,
+)
+from gtgen.storage.shards import (
+    chunks_like_gtgen,
+    copy_samples,
+    sample_layout,
+    samples_per_shard,
+    shard_file,
+    write_shard,
+)
 from gtgen.storage.specs import dimension_names, row_shape
 from gtgen.storage.stores import create_group
 
-REJECTED = (("t_ns", "int64"), ("drive", "uint16"), ("reason", "uint8"), ("icp_fitness", "float32"), ("icp_rmse_m", "float32"))
+REJECTED = tuple(s for s in DATASET.arrays if s.path.startswith("rejected/"))  # one row per rejected sample
 
 
 class ShardWriter:
@@ -48,7 +61,7 @@ class ShardWriter:
         self.rows = RowAppender(self.points)
         self.offsets = [0]
         self.n = 0
-        self.rejected: list[tuple[int, int, int, float, float]] = []
+        self.rejected: list[dict[str, Any]] = []  # rows of the rejected/ arrays, by name
 
     def add_block(self, points: list[NDArray[np.float32]]) -> None:
         """Account for a whole shard of samples already written by ``write_block`` (in order)."""
@@ -90,17 +103,19 @@ class ShardWriter:
             self.rows.append(pts[p0 : min(p0 + step, n_pts)])
         self.offsets.extend((self.offsets[-1] + voff[1:]).tolist())
         self.n = off + S
-        for t, rs, f, r in zip(src["rejected/t_ns"][:], src["rejected/reason"][:], src["rejected/icp_fitness"][:], src["rejected/icp_rmse_m"][:]):
-            self.reject(int(t), drive, int(rs), float(f), float(r))
+        cols = {s.path.split("/")[1]: src[s.path][:] for s in REJECTED}
+        for i in range(len(cols["t_ns"])):
+            self.rejected.append({**{name: col[i] for name, col in cols.items()}, "drive": drive})
         return S
 
-    def reject(self, t_ns: int, drive: int, reason: int, fitness: float = float("nan"), rmse: float = float("nan")) -> None:
-        """Record a rejected sample."""
-        self.rejected.append((t_ns, drive, reason, fitness, rmse))
+    def reject(self, t_ns: int, drive: int, reason: int, **qa: Any) -> None:
+        """Record a rejected sample with what is known of it (``qa``: other rejected/ arrays
+        by name, such as its ICP fitness and the placement ICP proposed)."""
+        self.rejected.append({"t_ns": t_ns, "drive": drive, "reason": reason, **qa})
 
     def rejected_counts(self) -> dict[str, int]:
         """Return {reason name: rejected samples}."""
-        return codes.reason_counts(np.array([r[2] for r in self.rejected], np.uint8))
+        return codes.reason_counts(np.array([r["reason"] for r in self.rejected], np.uint8))
 
     def _ensure(self, n: int) -> None:
         """Grow the sample axis (metadata only) when more samples come than were expected."""
@@ -119,14 +134,16 @@ class ShardWriter:
                                      chunks=(max(self.n + 1, 1),), fill_value=0,
                                      dimension_names=dimension_names(DATASET.spec("inputs/voxel_offsets")))
         off[:] = np.asarray(self.offsets, np.int64)
-        R = len(self.rejected)
-        rej = list(zip(*self.rejected)) if R else [[] for _ in REJECTED]
-        for (name, dtype), col in zip(REJECTED, rej):
-            s = DATASET.spec(f"rejected/{name}")
-            arr = self.root.create_array(s.path, shape=(R,), dtype=dtype, chunks=(max(R, 1),), fill_value=s.fill_value(),
+        rows = sorted(self.rejected, key=lambda r: (int(r["drive"]), int(r["t_ns"])))
+        R = len(rows)
+        for s in REJECTED:
+            name, shape = s.path.split("/")[1], row_shape(s, {})
+            fill = s.fill_value()
+            col = np.array([np.broadcast_to(np.asarray(r.get(name, fill), s.dtype), shape) for r in rows], s.dtype).reshape((R, *shape))
+            arr = self.root.create_array(s.path, shape=(R, *shape), dtype=s.dtype, chunks=(max(R, 1), *shape), fill_value=fill,
                                          dimension_names=dimension_names(s))
             if R:
-                arr[:] = np.asarray(col, dtype=dtype)
+                arr[:] = col
         self.root.attrs.update(attrs.model_dump(mode="json"))
         return self.n
 

@@ -7,7 +7,8 @@ keeps it), else from the drive's GNSS fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,9 @@ from gtgen.errors import DemError
 from gtgen.geometry import grid_xy, invert, quat_to_yaw, yaw_transform
 
 MIN_ICP_POINTS = 100
+COARSE = 3.0  # correspondence distance of the first pass from a drifted prior, in icp_max_distance_m
+MIN_SIDE_CELLS = 800  # observed cells on each side of a tile border before the sides are fitted apart
+MIN_BORDER_FITS = 3  # fits of a border before its offset is trusted
 
 
 def dem_patch(dem: DemMosaic, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
@@ -75,22 +79,41 @@ def _dz_against_dem(dem: DemMosaic, fit: PlanarFit, X: NDArray, Y: NDArray, driv
 
 @dataclass(frozen=True)
 class Placement:
-    """One sample's outcome: its reason code (OK if kept), and the ICP result if ICP ran;
-    ``T_crs_target`` is the placement after ICP of a kept sample."""
+    """One sample's outcome: its reason code (OK if kept), the ICP result if ICP ran, its
+    placement after ICP (``T_crs_target``) and the signals the decision read."""
 
     reason: int
     icp: IcpResult | None = None
     T_crs_target: NDArray | None = None
+    signals: dict[str, float] = field(default_factory=dict)
+
+
+def vegetation(d: NDArray, mask: NDArray, vegetation_m: float) -> NDArray[np.bool_]:
+    """Return the cells of ``mask`` in blobs standing more than ``vegetation_m`` above the
+    DEM (``d``: label minus DEM, per cell) after the median offset: a blob, because noise
+    spikes come alone while crowns, bushes and berms cover neighbouring cells."""
+    from scipy.ndimage import binary_dilation, binary_opening
+
+    high = mask & (d - np.median(d[mask]) > vegetation_m)
+    if not high.any():
+        return high
+    return binary_dilation(binary_opening(high, np.ones((2, 2), bool)), iterations=1) & mask
 
 
 class DrivePlacement:
-    """A drive's placement in the DEM's CRS, refined sample by sample."""
+    """A drive's placement in the DEM's CRS, refined sample by sample (see ``place``)."""
 
-    def __init__(self, cfg: GtgenConfig, dem: DemMosaic, fit: PlanarFit, dz_dem: float) -> None:
+    def __init__(self, cfg: GtgenConfig, dem: DemMosaic, fit: PlanarFit, dz_dem: float, gnss: tuple[NDArray, NDArray]) -> None:
         self.cfg, self.dem, self.fit, self.dz_dem = cfg, dem, fit, dz_dem
         gs = cfg.grids.short
         self.X, self.Y = grid_xy(gs.size, gs.resolution_m)
         self.T_prior = yaw_transform(fit.tx, fit.ty, dz_dem, fit.yaw)  # T_crs_odom
+        self.chained = False  # the prior is a kept sample's placement (else the GNSS fit's)
+        self.kept_at_m = 0.0  # odometry distance of the last kept sample
+        self.gnss_t, self.gnss_xy = gnss  # (t_ns, (odom x, y, CRS E, N)) of the usable fixes
+        n = len(dem.index.tiles)
+        self.tile_cells, self.tile_bad = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        self.borders: dict[tuple[int, int], list[NDArray]] = {}  # (tile a, tile b): offsets of b from a, per fit
 
     @classmethod
     def of_drive(cls, cfg: GtgenConfig, drive: Any, fused: Any, dem: DemMosaic, dem_dir: Path) -> DrivePlacement:
@@ -101,7 +124,17 @@ class DrivePlacement:
         fit = gnss_fit(cfg, drive, track, dem.crs)
         _check_overlap(dem, fit, track, dem_dir)
         gs = cfg.grids.short
-        return cls(cfg, dem, fit, _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive, fused))
+        dz = _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive, fused)
+        return cls(cfg, dem, fit, dz, gnss_fixes(cfg, drive, track, dem.crs))
+
+    def without(self, tiles: frozenset[int]) -> DrivePlacement:
+        """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
+        not read ``tiles``."""
+        from gtgen.dem.tiles import DemMosaic
+
+        self.dem.close()
+        return DrivePlacement(self.cfg, DemMosaic(self.dem.index, self.dem.crs, self.dem.exclude | tiles), self.fit,
+                              self.dz_dem, (self.gnss_t, self.gnss_xy))
 
     @property
     def geoid_offset_m(self) -> float:
@@ -114,30 +147,181 @@ class DrivePlacement:
         return {"gnss_yaw_rad": f.yaw, "gnss_tx_m": f.tx, "gnss_ty_m": f.ty, "gnss_rms_m": f.rms_m, "gnss_used": f.n_used,
                 "gnss_outliers": f.n_outliers, "dz_dem_m": self.dz_dem, "geoid_offset_m": self.geoid_offset_m}
 
-    def place(self, k: int, pos: NDArray, yaw: float, region: NDArray, elev: NDArray) -> Placement:
-        """Refine sample ``k`` (base at ``pos``, ``yaw`` in odom; its fused short ``region``
-        and ``elev``) by ICP against the DEM, and keep it or say why not. A kept sample's
-        placement is the prior of the next."""
+    def place(self, k: int, t_ns: int, pos: NDArray, yaw: float, region: NDArray, elev: NDArray, distance_m: float) -> Placement:
+        """Refine sample ``k`` (time ``t_ns``, base at ``pos``, ``yaw`` in odom, ``distance_m``
+        travelled; its fused short ``region`` and ``elev``) by ICP against the DEM from its
+        prior, and keep it or say why not. A kept sample's placement is the prior of the next."""
         dc = self.cfg.dem
         T_odom_target = yaw_transform(*pos, yaw)
-        T_crs_target = self.T_prior @ T_odom_target
-        dem = dem_patch(self.dem, T_crs_target, self.X, self.Y)
-        src_mask = codes.observed(region) & np.isfinite(elev)
-        tgt_mask = np.isfinite(dem)
-        if not tgt_mask.any():
+        T_prior = self.T_prior @ T_odom_target
+        dem = dem_patch(self.dem, T_prior, self.X, self.Y)
+        obs = codes.observed(region) & np.isfinite(elev)
+        if not np.isfinite(dem).any():
             return Placement(codes.NO_DEM)
-        if src_mask.sum() < MIN_ICP_POINTS:
+        if obs.sum() < MIN_ICP_POINTS:
             return Placement(codes.TOO_FEW_POINTS)
+        # a sample mostly on tiles set aside is not placed (ICP on the cells off them drifts
+        # along the tiles' edge: measured on configs/adversity.yaml, worse than odometry alone)
+        if self.dem.exclude and self._on_set_aside(T_prior, obs) > 0.5:
+            return Placement(codes.SUSPECT_TILE, T_crs_target=T_prior)
+        both = obs & np.isfinite(dem)  # cells without DEM (set-aside tiles, gaps) have nothing to fit
+        d = np.where(both, elev - dem, 0.0)
+        veg = vegetation(d, both, dc.vegetation_m) if both.any() else both
+        age = abs(distance_m - self.kept_at_m) if self.chained else np.inf  # travel since the prior's kept sample
+        stale = self.chained and age > dc.judge_within_m  # odometry has drifted since
+        res = self._icp(k, both & ~veg, elev, dem, coarse=stale)
+        T = T_prior @ res.T
+        aligned = dem_patch(self.dem, T, self.X, self.Y)
+        sig = self._signals(res, T, T_odom_target, t_ns, elev, both & ~veg, aligned)
+        sig["vegetation_share"] = float(veg.sum() / max(obs.sum(), 1))
+        sig["prior_age_m"] = float(age)
+        reason = self._decide(res, sig, dc.drift_allowance * age if self.chained else 0.0)
+        if self.chained and not stale:  # a prior to judge the DEM by
+            self._judge_tiles(T_prior, both & ~veg, d)
+            if res.fitness >= dc.min_fitness and res.rmse_m <= dc.max_rmse_m and k % 2 == 0:
+                self._judge_borders(k, T, both & ~veg, elev, aligned)
+        if reason == codes.OK:
+            self.T_prior = T @ invert(T_odom_target)
+            self.chained, self.kept_at_m = True, distance_m
+        return Placement(reason, res, T, sig)
+
+    def _icp(self, k: int, src_mask: NDArray, elev: NDArray, dem: NDArray, coarse: bool = False) -> IcpResult:
+        """ICP of the masked observed cells onto the DEM patch; ``coarse`` first matches within
+        COARSE times the correspondence distance, for a prior that may be metres off."""
+        dc = self.cfg.dem
         src = np.column_stack([self.X[src_mask], self.Y[src_mask], elev[src_mask]])
         if len(src) > dc.icp_max_points:
             src = src[np.random.default_rng(k).choice(len(src), dc.icp_max_points, replace=False)]  # per-sample seed: order-free
+        tgt_mask = np.isfinite(dem)
         tgt = np.column_stack([self.X[tgt_mask], self.Y[tgt_mask], dem[tgt_mask]])
         nrm = _normals(np.where(tgt_mask, dem, np.nanmedian(dem)), self.cfg.grids.short.resolution_m)[tgt_mask]
-        res = icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations)
+        init = icp_4dof(src, tgt, nrm, COARSE * dc.icp_max_distance_m, dc.icp_iterations).T if coarse else None
+        return icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations, init=init)
+
+    def _signals(self, res: IcpResult, T: NDArray, T_odom_target: NDArray, t_ns: int, elev: NDArray, ground: NDArray,
+                 aligned: NDArray) -> dict[str, float]:
+        """The evidence on a placement ``T``: the correction over the prior, the disagreement of
+        the observed ground with the DEM there (``aligned``), and the offset of the window's
+        GNSS fixes."""
+        dc = self.cfg.dem
+        C = res.T
+        g = ground & np.isfinite(aligned)
+        dev = np.abs(elev[g] - aligned[g])
+        win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
+        offset = np.nan
+        if win.sum() >= dc.min_window_fixes:
+            T_crs_odom = T @ invert(T_odom_target)
+            xy = self.gnss_xy[win]
+            placed = xy[:, :2] @ T_crs_odom[:2, :2].T + T_crs_odom[:2, 3]
+            offset = float(np.median(np.linalg.norm(placed - xy[:, 2:], axis=1)))
+        return {"correction_xy_m": float(np.hypot(C[0, 3], C[1, 3])), "correction_z_m": float(abs(C[2, 3])),
+                "correction_yaw_deg": float(abs(np.degrees(np.arctan2(C[1, 0], C[0, 0])))),
+                "disagreement": float((dev > dc.disagreement_m).mean()) if len(dev) else 1.0,
+                "gnss_offset_m": offset, "gnss_fixes": int(win.sum())}
+
+    def _decide(self, res: IcpResult, sig: dict[str, float], allowed_m: float = 0.0) -> int:
+        """Return the reason code of a placement (``allowed_m``: the drift since the last
+        kept sample, added to the correction limits)."""
+        dc = self.cfg.dem
         if res.fitness < dc.min_fitness:
-            return Placement(codes.LOW_FITNESS, res)
+            return codes.LOW_FITNESS
         if res.rmse_m > dc.max_rmse_m:
-            return Placement(codes.HIGH_RMSE, res)
-        T_crs_target = T_crs_target @ res.T
-        self.T_prior = T_crs_target @ invert(T_odom_target)
-        return Placement(codes.OK, res, T_crs_target)
+            return codes.HIGH_RMSE
+        # a prior from the GNSS fit is only as good as GNSS: the first sample may move far
+        if self.chained and (sig["correction_xy_m"] > dc.max_correction_m + allowed_m
+                             or sig["correction_z_m"] > dc.max_correction_z_m + allowed_m
+                             or sig["correction_yaw_deg"] > dc.max_correction_yaw_deg):
+            return codes.LARGE_CORRECTION
+        if sig["disagreement"] > dc.max_disagreement:
+            return codes.DEM_DISAGREES
+        if np.isfinite(sig["gnss_offset_m"]) and sig["gnss_offset_m"] > dc.max_gnss_offset_m:
+            return codes.GNSS_DISAGREES
+        return codes.OK
+
+    def _judge_tiles(self, T: NDArray, ground: NDArray, diff: NDArray) -> None:
+        """Count per DEM tile the observed ground cells of a sample at a trusted prior ``T``,
+        and those that disagree with the DEM there (``diff``, after the median offset): a
+        tile of another place disagrees."""
+        if not ground.any():
+            return
+        tile = self._tiles_at(T, ground)
+        d = diff[ground]
+        bad = np.abs(d - np.median(d)) > self.cfg.dem.disagreement_m
+        ok = tile >= 0
+        n = len(self.tile_cells)
+        self.tile_cells += np.bincount(tile[ok], minlength=n)
+        self.tile_bad += np.bincount(tile[ok], weights=bad[ok], minlength=n).astype(np.int64)
+
+    def _judge_borders(self, k: int, T: NDArray, ground: NDArray, elev: NDArray, dem: NDArray) -> None:
+        """Where a sample's observed ground spans two tiles, fit each side to its own tile:
+        the difference of the two corrections is how far one tile lies from the other (a
+        misplaced tile shows in every border it has, a good one only in the border with it)."""
+        src_tile = self._tiles_at(T, ground)
+        have = np.isfinite(dem)
+        tgt_tile = self._tiles_at(T, have)
+        ids, counts = np.unique(src_tile[src_tile >= 0], return_counts=True)
+        if len(ids) < 2:
+            return
+        a, b = ids[np.argsort(counts)[-2:]]
+        if min((src_tile == a).sum(), (src_tile == b).sum()) < MIN_SIDE_CELLS:
+            return
+        dc = self.cfg.dem
+        Xs, Ys, Xt, Yt = self.X[ground], self.Y[ground], self.X[have], self.Y[have]
+        nrm = _normals(np.where(have, dem, np.nanmedian(dem)), self.cfg.grids.short.resolution_m)[have]
+        side = {}
+        for i in (a, b):
+            s_, t_ = src_tile == i, tgt_tile == i
+            src = np.column_stack([Xs[s_], Ys[s_], elev[ground][s_]])
+            src = src[np.random.default_rng(k).choice(len(src), min(len(src), dc.icp_max_points // 4), replace=False)]
+            res = icp_4dof(src, np.column_stack([Xt[t_], Yt[t_], dem[have][t_]]), nrm[t_], dc.icp_max_distance_m, dc.icp_iterations)
+            side[int(i)] = res.T[:2, 3]
+        pair = (int(min(a, b)), int(max(a, b)))
+        self.borders.setdefault(pair, []).append(np.concatenate([side[pair[0]], side[pair[1]]]))
+
+    def _tiles_at(self, T: NDArray, mask: NDArray) -> NDArray[np.int64]:
+        E = T[0, 0] * self.X[mask] + T[0, 1] * self.Y[mask] + T[0, 3]
+        N = T[1, 0] * self.X[mask] + T[1, 1] * self.Y[mask] + T[1, 3]
+        return self.dem.tile_of(E, N)
+
+    def suspect_tiles(self) -> frozenset[int]:
+        """Return the tiles the drive's observations contradict: their observed ground
+        disagrees with them (enough cells seen), or most of their borders with the other
+        tiles do not match (see ``_judge_borders``)."""
+        dc = self.cfg.dem
+        share = self.tile_bad / np.maximum(self.tile_cells, 1)
+        out = {int(i) for i in np.nonzero((self.tile_cells >= dc.min_tile_cells) & (share > dc.max_tile_disagreement))[0]}
+        off, ok, pull = defaultdict(int), defaultdict(int), {}
+        for (a, b), fits in self.borders.items():
+            if len(fits) < MIN_BORDER_FITS or a in out or b in out:
+                continue
+            c = np.median(np.array(fits), axis=0)  # corrections of side a (x, y) and side b
+            far = float(np.linalg.norm(c[2:] - c[:2])) > dc.max_correction_m
+            for i, ci in ((a, c[:2]), (b, c[2:])):
+                (off if far else ok)[i] += 1
+                pull[(i, a, b)] = float(np.linalg.norm(ci))
+        # a misplaced tile mismatches most of its borders; of a border alone, the side the
+        # placements (anchored on the tiles driven before) had to move more for
+        bad = {i for i in off if off[i] > ok[i] and off[i] > 1}
+        for (a, b), fits in self.borders.items():
+            if off[a] == 1 and off[b] == 1 and ok[a] == ok[b] == 0 and (a, a, b) in pull:
+                bad.add(a if pull[(a, a, b)] > pull[(b, a, b)] else b)
+        return frozenset(out | bad)
+
+    def _on_set_aside(self, T: NDArray, mask: NDArray) -> float:
+        """Return the share of the cells ``mask`` that lie on tiles set aside, at placement ``T``."""
+        E = T[0, 0] * self.X[mask] + T[0, 1] * self.Y[mask] + T[0, 3]
+        N = T[1, 0] * self.X[mask] + T[1, 1] * self.Y[mask] + T[1, 3]
+        return float(np.isin(self.dem.tile_of(E, N), list(self.dem.exclude)).mean())
+
+
+
+def gnss_fixes(cfg: GtgenConfig, drive: Any, track: PoseTrack, crs: str) -> tuple[NDArray, NDArray]:
+    """Return the usable fixes of a drive: stamps (n,), and (odom x, y, CRS E, N) (n, 4)."""
+    from pyproj import Transformer
+
+    t = drive["gnss/t_ns"][:]
+    lat, lon, alt, status = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/alt_m"][:], drive["gnss/status"][:]
+    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt) & track.covered(t)
+    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon[ok], lat[ok])
+    pos, _ = track.interpolate(t[ok])
+    return t[ok], np.column_stack([pos[:, :2], E, N])

@@ -172,11 +172,12 @@ class TileIndex:
 class DemMosaic:
     """Mosaicked reads of a TileIndex in the working CRS ``crs``, on one pixel lattice."""
 
-    def __init__(self, index: TileIndex, crs: str) -> None:
+    def __init__(self, index: TileIndex, crs: str, exclude: frozenset[int] = frozenset()) -> None:
+        """``exclude``: indices of tiles not to read (tiles judged wrong by dem-align)."""
         from pyproj import CRS
         from rasterio.warp import transform_bounds
 
-        self.index, self.crs = index, crs
+        self.index, self.crs, self.exclude = index, crs, frozenset(exclude)
         work = CRS.from_user_input(crs)
         self._bounds, res = [], []
         for t in index.tiles:
@@ -195,6 +196,14 @@ class DemMosaic:
         """Return the union bounds (left, bottom, right, top) of every tile in the working CRS."""
         b = np.array(self._bounds)
         return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+    def tile_of(self, E: NDArray, N: NDArray) -> NDArray[np.int64]:
+        """Return the index of the tile each point (working CRS) lies in (the first one where
+        tiles overlap), -1 outside every tile."""
+        out = np.full(np.shape(E), -1, np.int64)
+        for i, (l, b, r, t) in enumerate(self._bounds):
+            out[(out < 0) & (E >= l) & (E < r) & (N > b) & (N <= t)] = i
+        return out
 
     def _dataset(self, i: int) -> Any:
         """Return tile ``i`` as a float32 north-up dataset on the working lattice."""
@@ -251,7 +260,8 @@ class DemMosaic:
         w, h = int(np.ceil((right - x0) / res)), int(np.ceil((y0 - bottom) / res))
         out = np.full((h, w), np.nan, np.float32)
         box = (x0, y0 - h * res, x0 + w * res, y0)
-        hits = [i for i, b in enumerate(self._bounds) if b[0] < box[2] and b[2] > box[0] and b[1] < box[3] and b[3] > box[1]]
+        hits = [i for i, b in enumerate(self._bounds)
+                if i not in self.exclude and b[0] < box[2] and b[2] > box[0] and b[1] < box[3] and b[3] > box[1]]
         for scale in sorted({self.index.tiles[i].z_to_m for i in hits}):
             group = [self._dataset(i)[0] for i in hits if self.index.tiles[i].z_to_m == scale]
             data, _ = merge(group, bounds=box, res=res, nodata=np.nan, dtype="float32")

@@ -18,8 +18,8 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.decode.image import decode_image, resize_image
 from gtgen.bag.poses import PoseTrack
-from gtgen.bag.tf import TfBuffer
 from gtgen.bag.reader import BagSet
+from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract.calib import map_to_odom
@@ -29,7 +29,13 @@ from gtgen.extract.select import Plan
 from gtgen.extract.stage import STAGE, Staged
 from gtgen.extract.voxels import nearest_points, padded, to_odom_frame, voxel_points
 from gtgen.runtime.pool import BackgroundWrites, Pool
-from gtgen.storage.chunks import Runs, check_encoded_chunks, chunk_file, compressors, place_chunk
+from gtgen.storage.chunks import (
+    Runs,
+    check_encoded_chunks,
+    chunk_file,
+    compressors,
+    place_chunk,
+)
 from gtgen.storage.schema import DRIVE, MAP_LAYERS
 
 log = logging.getLogger(__name__)

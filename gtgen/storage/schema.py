@@ -142,12 +142,22 @@ _DATASET += [
     ArraySpec("meta/icp_fitness", "float32", "(S,)", "0..1", "-", "0", "share of source cells within dem.icp_max_distance_m"),
     ArraySpec("meta/icp_rmse_m", "float32", "(S,)", "m", "-", "0", "point-to-plane RMSE of the inliers"),
     ArraySpec("meta/icp_correction", "float32", "(S, 4)", "m, m, m, rad", _TGT, "0", "ICP correction dx, dy, dz, dyaw over the prior placement"),
+    ArraySpec("meta/dem_disagreement", "float32", "(S,)", "0..1", "-", "0", "share of observed ground cells beyond dem.disagreement_m from the aligned DEM"),
+    ArraySpec("meta/gnss_offset_m", "float32", "(S,)", "m", "DEM CRS", "NaN", "median distance of the window's GNSS fixes from the placed track (NaN: too few fixes)"),
+    ArraySpec("meta/vegetation_share", "float32", "(S,)", "0..1", "-", "0", "share of observed cells left out of ICP as vegetation"),
     ArraySpec("meta/split", "uint8", "(S,)", "code", "-", "0", "0 train, 1 val (by geography block)"),
     ArraySpec("rejected/t_ns", "int64", "(R,)", "ns", "-", "0", "time of each rejected sample"),
     ArraySpec("rejected/drive", "uint16", "(R,)", "-", "-", "0", "drive of each rejected sample"),
     ArraySpec("rejected/reason", "uint8", "(R,)", "code", "-", "0", "why (gtgen.codes)"),
+    ArraySpec("rejected/pos_odom_m", "float64", "(R, 3)", "m", "odom", "NaN", "base position at t"),
+    ArraySpec("rejected/yaw_odom_rad", "float64", "(R,)", "rad", "odom", "NaN", "base yaw at t"),
     ArraySpec("rejected/icp_fitness", "float32", "(R,)", "0..1", "-", "NaN", "ICP fitness if ICP ran"),
     ArraySpec("rejected/icp_rmse_m", "float32", "(R,)", "m", "-", "NaN", "ICP RMSE if ICP ran"),
+    ArraySpec("rejected/T_crs_target", "float64", "(R, 4, 4)", "m", "DEM CRS <- target", "NaN", "the placement ICP proposed (NaN if ICP did not run)"),
+    ArraySpec("rejected/icp_correction", "float32", "(R, 4)", "m, m, m, rad", _TGT, "NaN", "ICP correction dx, dy, dz, dyaw over the prior"),
+    ArraySpec("rejected/dem_disagreement", "float32", "(R,)", "0..1", "-", "NaN", "as meta/dem_disagreement"),
+    ArraySpec("rejected/gnss_offset_m", "float32", "(R,)", "m", "DEM CRS", "NaN", "as meta/gnss_offset_m"),
+    ArraySpec("rejected/vegetation_share", "float32", "(R,)", "0..1", "-", "NaN", "as meta/vegetation_share"),
 ]
 DATASET = StoreFormat("gtgen-dataset", 2, tuple(_DATASET), "gtgen dem-align")
 
@@ -174,6 +184,7 @@ class DriveEntry(BaseModel):
     bags: list[BagRef]
     crs: str = Field(description="working CRS of the drive's DEM placement (meta/T_crs_target, meta/crs_en_m)")
     alignment: dict[str, float | int] = Field(description="GNSS fit and vertical offset of the drive")
+    suspect_tiles: list[str] = Field(default_factory=list, description="DEM tiles judged wrong against the drive's observations: not used for filling")
 
 
 class DatasetAttrs(BaseModel):

@@ -145,4 +145,33 @@ def gnss_errors(cfg: SynthConfig, t_ns: NDArray[np.int64]) -> NDArray[np.float64
     for k in range(1, n):  # a recursion over time, not over cells: each step needs the last
         bias[k] = phi[k] * bias[k - 1] + np.sqrt(1 - phi[k] ** 2) * cfg.gnss_bias_m * drive[k]
     bias[:, 2] *= 1.5
-    return bias + rng.normal(0, cfg.gnss_noise_m, (n, 3)) * np.array([1.0, 1.0, 1.5])
+    return bias + rng.normal(0, cfg.gnss_noise_m, (n, 3)) * np.array([1.0, 1.0, 1.5]) + gnss_jumps(cfg, t_ns)
+
+
+def _events(cfg: SynthConfig, t_ns: NDArray[np.int64], n: int, length_s: float, stream: int) -> list[tuple[int, int]]:
+    """Return ``n`` seeded [start, stop) intervals [ns] inside the drive."""
+    if not n or not len(t_ns):
+        return []
+    rng = np.random.default_rng([cfg.seed, stream])
+    t0, t1 = int(t_ns[0]), int(t_ns[-1])
+    starts = np.sort(rng.uniform(t0 + 0.1 * (t1 - t0), t1 - length_s * 1e9, n)).astype(np.int64)
+    return [(int(a), int(a + length_s * 1e9)) for a in starts]
+
+
+def gnss_jumps(cfg: SynthConfig, t_ns: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Return the multipath jumps (N, 3) [m] added to the fixes at ``t_ns``: ``gnss_jumps``
+    events of ``gnss_jump_m`` horizontally, each for ``gnss_jump_s``."""
+    out = np.zeros((len(t_ns), 3))
+    rng = np.random.default_rng([cfg.seed, 13])
+    for a, b in _events(cfg, t_ns, cfg.gnss_jumps, cfg.gnss_jump_s, 14):
+        ang = rng.uniform(0, 2 * np.pi)
+        out[(t_ns >= a) & (t_ns < b), :2] += cfg.gnss_jump_m * np.array([np.cos(ang), np.sin(ang)])
+    return out
+
+
+def gnss_outage(cfg: SynthConfig, t_ns: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Return where the receiver has no fix (``gnss_outages`` outages of ``gnss_outage_s``)."""
+    out = np.zeros(len(t_ns), bool)
+    for a, b in _events(cfg, t_ns, cfg.gnss_outages, cfg.gnss_outage_s, 15):
+        out |= (t_ns >= a) & (t_ns < b)
+    return out

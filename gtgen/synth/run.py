@@ -18,7 +18,7 @@ from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_t
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
 from gtgen.synth import sensors
-from gtgen.synth.drive import gnss_errors
+from gtgen.synth.drive import gnss_errors, gnss_outage
 from gtgen.synth.messages import MessageFactory
 from gtgen.synth.world import SynthWorld
 
@@ -56,7 +56,11 @@ class _Sinks:
         self.tmp = tmp
         if formats in ("mcap", "both"):
             from rosbags.rosbag2 import Writer
-            from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+            from rosbags.rosbag2.enums import (
+                CompressionFormat,
+                CompressionMode,
+                StoragePlugin,
+            )
 
             w = Writer(tmp / "ros2", version=9, storage_plugin=StoragePlugin.MCAP)
             w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
@@ -189,6 +193,7 @@ class _Ticker:
         self.vox_p = _period(sc.odom_rate_hz, sc.voxel_rate_hz, "voxel_rate_hz")
         gnss_idx = np.arange(0, self.n, self.gnss_p)
         self.gnss_err = gnss_errors(sc, world.t_ns[gnss_idx])
+        self.gnss_off = gnss_outage(sc, world.t_ns[gnss_idx])
         self.gnss_sigma = float(np.hypot(sc.gnss_bias_m, sc.gnss_noise_m))
         self.K = sensors.camera_intrinsic(sc)
         self.T_base_cam = {c: sensors.camera_extrinsic(c) for c in tp.cameras}
@@ -221,7 +226,7 @@ class _Ticker:
         """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
         out: list = []
         self._odometry(out, k)
-        if k % self.gnss_p == 0:
+        if k % self.gnss_p == 0 and not self.gnss_off[k // self.gnss_p]:
             self._gnss(out, k)
         view = self._view(k) if (k % self.map_p == 0 or k % self.vox_p == 0) else None
         if k % self.map_p == 0:
@@ -377,5 +382,13 @@ def load_world(out: Path) -> SynthWorld:
     meta_path = out / "truth" / "truth.json"
     if not meta_path.is_file():
         raise GtgenError(f"'{out}' holds no synth truth (expected {meta_path})")
-    meta = json.loads(meta_path.read_text())
-    return SynthWorld(SynthConfig.model_validate(meta["synth"]))
+    from pydantic import ValidationError
+
+    synth = json.loads(meta_path.read_text())["synth"]
+    known = {k: v for k, v in synth.items() if k in SynthConfig.model_fields}
+    if len(known) < len(synth):  # a drive made by another gtgen: keys this one has no knob for
+        log.info("synth truth '%s': ignoring keys %s", meta_path, sorted(set(synth) - set(known)))
+    try:
+        return SynthWorld(SynthConfig.model_validate(known))
+    except ValidationError as err:
+        raise GtgenError(f"synth truth '{meta_path}' does not describe a drive this gtgen can rebuild: {err.errors()[0]['msg']}") from err

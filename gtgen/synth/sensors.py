@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.config import GridSpec, SynthConfig
-from gtgen.geometry import rpy_to_quat, quat_to_matrix
+from gtgen.geometry import quat_to_matrix, rpy_to_quat
 from gtgen.synth.terrain import Terrain
 
 N_AZ = 720
@@ -100,10 +100,12 @@ def xracer_map(
     """Return the simulated X-Racer layers at cells whose world positions are given.
 
     Elevations are mapped to the map frame by adding ``z_world_to_map`` (the odometry's
-    z offset), so odometry z drift appears in the published map as on a real robot.
+    z offset), so odometry z drift appears in the published map as on a real robot. Where
+    the lidar hits a crown or a bush, the map holds the ground under it, or with
+    ``canopy`` the crown's top (as a real stack's elevation map does).
     """
     u, v = cell_world_uv
-    ground, risk = terrain.sample(u, v, ("ground", "risk"))
+    ground, risk, surface = terrain.sample(u, v, ("ground", "risk", "surface")) if cfg.canopy else (*terrain.sample(u, v, ("ground", "risk")), None)
     ai, ri, r = polar_lookup(view, u, v)
     ok = ri >= 0
     flat = ai * len(view.ranges) + np.maximum(ri, 0)  # one index into the (N_AZ, N_R) view arrays
@@ -112,7 +114,8 @@ def xracer_map(
     held = np.where(ok, view.held_ground.ravel().take(flat), np.float32(np.nan))
     r = r.astype(np.float32)
     noise_sd = np.float32(cfg.elevation_noise_m) + np.float32(cfg.elevation_noise_per_m) * r
-    elev = np.where(seen_g | seen_s, ground + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
+    seen = ground if surface is None else np.where(seen_s & ~seen_g, surface, ground)  # canopy: the crown top is what is seen
+    elev = np.where(seen_g | seen_s, seen + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
     conf = np.exp2(r * np.float32(-1.0 / cfg.confidence_range_m))  # 0.5 ** (r / confidence_range_m)
     conf = np.clip(conf * (1 + np.float32(0.05) * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
     conf = np.where(seen_s, np.maximum(conf, np.float32(0.12)), np.float32(0.0))

@@ -10,7 +10,7 @@ which keeps the simulator fast.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +25,7 @@ BASE_HEIGHT_M = 240.0
 
 @dataclass(frozen=True)
 class Obstacles:
-    """Rocks and trees: centres (u, v) [m], radii and heights [m], and their risk."""
+    """Rocks, trees and bushes: centres (u, v) [m], radii and heights [m], and their risk."""
 
     rock_uv: NDArray[np.float64]
     rock_radius: NDArray[np.float64]
@@ -34,6 +34,38 @@ class Obstacles:
     trunk_radius: NDArray[np.float64]
     canopy_radius: NDArray[np.float64]
     tree_height: NDArray[np.float64]
+    bush_uv: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    bush_radius: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    bush_height: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass(frozen=True)
+class Changes:
+    """Patches where the terrain changed since the DEM survey: centres (u, v), radii and
+    height changes [m] (+ berm, - cut). The world has them, the DEM does not."""
+
+    uv: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    radius: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    dh: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+    def height(self, u: NDArray, v: NDArray) -> NDArray[np.float64]:
+        """Return the change at (u, v): a smooth dome or bowl per patch."""
+        out = np.zeros(np.broadcast(u, v).shape)
+        for (cu, cv), r, dh in zip(self.uv, self.radius, self.dh):
+            q = np.clip(1 - ((u - cu) ** 2 + (v - cv) ** 2) / r**2, 0, None)
+            out += dh * q**2
+        return out
+
+
+def place_changes(cfg: SynthConfig, path_uv: NDArray) -> Changes:
+    """Return ``terrain_changes`` seeded patches on the path (berms and cuts alternating)."""
+    if not cfg.terrain_changes:
+        return Changes()
+    rng = np.random.default_rng([cfg.seed, 8])
+    idx = np.sort(rng.integers(len(path_uv) // 10, len(path_uv) - len(path_uv) // 10, cfg.terrain_changes))
+    sign = np.where(np.arange(cfg.terrain_changes) % 2 == 0, 1.0, -1.0)
+    return Changes(path_uv[idx] + rng.normal(0, 3.0, (len(idx), 2)), np.full(len(idx), cfg.terrain_change_radius_m),
+                   sign * cfg.terrain_change_m)
 
 
 def place_obstacles(cfg: SynthConfig, bounds: tuple[float, float, float, float], path_uv: NDArray) -> Obstacles:
@@ -65,7 +97,11 @@ def place_obstacles(cfg: SynthConfig, bounds: tuple[float, float, float, float],
     d, _ = path.query(near)
     near = near[d > 6.0]
     npl = len(near)
+    bush_uv = _bushes(cfg, bounds, path)
+    nb = len(bush_uv)
+    brng = np.random.default_rng([cfg.seed, 7])
     return Obstacles(
+        bush_uv=bush_uv, bush_radius=brng.uniform(1.0, 2.5, nb), bush_height=brng.uniform(0.5, 1.5, nb),
         rock_uv=rock_uv,
         rock_radius=rng.uniform(0.3, 0.9, nr),
         rock_height=rng.uniform(0.3, 0.8, nr),
@@ -76,13 +112,25 @@ def place_obstacles(cfg: SynthConfig, bounds: tuple[float, float, float, float],
     )
 
 
+def _bushes(cfg: SynthConfig, bounds: tuple[float, float, float, float], path) -> NDArray:
+    """Seeded bush centres, clear of the path (their own random stream: none by default)."""
+    if not cfg.bushes_per_ha:
+        return np.zeros((0, 2))
+    rng = np.random.default_rng([cfg.seed, 9])
+    u0, v0, u1, v1 = bounds
+    n = rng.poisson(cfg.bushes_per_ha * (u1 - u0) * (v1 - v0) / 1e4)
+    uv = np.column_stack([rng.uniform(u0, u1, n), rng.uniform(v0, v1, n)])
+    return uv[path.query(uv)[0] > 3.0]
+
+
 class Terrain:
     """The true world of a synthetic drive: ground, obstacle surface and risk."""
 
-    def __init__(self, cfg: SynthConfig, obstacles: Obstacles) -> None:
+    def __init__(self, cfg: SynthConfig, obstacles: Obstacles, changes: Changes | None = None) -> None:
         rng = np.random.default_rng([cfg.seed, 1])
         self.cfg = cfg
         self.obstacles = obstacles
+        self.changes = changes or Changes()
         k = 6
         self._wave_amp = cfg.hill_amplitude_m * rng.uniform(0.3, 1.0, k) / np.sqrt(k / 2)
         lam = rng.uniform(90.0, 450.0, k)
@@ -116,16 +164,19 @@ class Terrain:
             h -= depth * np.exp(-0.5 * (dn / w) ** 2)
         return h
 
-    def eval_grid(self, u0: float, v0: float, res: float, nu: int, nv: int) -> dict[str, NDArray[np.float32]]:
+    def eval_grid(self, u0: float, v0: float, res: float, nu: int, nv: int, surveyed: bool = False) -> dict[str, NDArray[np.float32]]:
         """Return exact layers on the grid of cell centres u0 + (i + .5) res, v0 + (j + .5) res.
 
         Layers: ``ground`` (bare earth + rocks) [m], ``bare`` (bare earth) [m],
-        ``surface`` (ground + tree crowns, what occludes) [m], ``risk`` [0..1].
+        ``surface`` (ground + tree crowns and bushes, what occludes) [m], ``risk`` [0..1].
+        ``surveyed``: the terrain as the DEM survey saw it, before the terrain changes.
         """
         u = u0 + (np.arange(nu) + 0.5) * res
         v = v0 + (np.arange(nv) + 0.5) * res
         U, V = np.meshgrid(u, v, indexing="ij")
         bare = self.smooth(U, V)
+        if len(self.changes.dh) and not surveyed:
+            bare += self.changes.height(U, V)
         ground = bare.copy()
         surface_extra = np.zeros_like(bare)
         risk = np.zeros_like(bare)
@@ -159,6 +210,13 @@ class Terrain:
             surface_extra[w] = np.maximum(surface_extra[w], crown)
             tree_risk = np.where(d < tr + 0.5, 1.0, np.where(d < cr, 0.6, 0.0))
             risk[w] = np.maximum(risk[w], tree_risk)
+        for (cu, cv), br, bh in zip(ob.bush_uv, ob.bush_radius, ob.bush_height):
+            w = window(cu, cv, br)
+            if w is None:
+                continue
+            q = np.clip(1 - ((U[w] - cu) ** 2 + (V[w] - cv) ** 2) / br**2, 0, None)
+            surface_extra[w] = np.maximum(surface_extra[w], bh * np.sqrt(q))
+            risk[w] = np.maximum(risk[w], np.where(q > 0, 0.3, 0.0))
         gy, gx = np.gradient(ground, res)
         slope = np.hypot(gx, gy)
         risk = np.maximum(risk, np.clip((slope - 0.25) / 0.6, 0, 1) * 0.5)

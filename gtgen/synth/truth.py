@@ -49,10 +49,33 @@ class Truth:
         T = yaw_transform(self.origin[0] + pw[0], self.origin[1] + pw[1], pw[2], 0.0) @ R @ yaw_transform(-po[0], -po[1], -po[2], 0.0)
         return T
 
-    def labels(self, T_odom_target: NDArray, X: NDArray, Y: NDArray, t_ns: int) -> tuple[NDArray, NDArray]:
-        """Return true (elevation rel. base z at t, risk) at target cells (X, Y)."""
+    def labels(self, T_odom_target: NDArray, X: NDArray, Y: NDArray, t_ns: int) -> tuple[NDArray, NDArray, NDArray]:
+        """Return, at target cells (X, Y), the true (ground elevation, risk, elevation the
+        stack should see), elevations relative to the base z at t. What the stack should see
+        is the ground, or with ``canopy`` the top of crowns and bushes; the DEM's truth is
+        the ground."""
         T = self.T_crs_odom(t_ns) @ T_odom_target
         E = T[0, 0] * X + T[0, 1] * Y + T[0, 3]
         N = T[1, 0] * X + T[1, 1] * Y + T[1, 3]
-        g, r = self.world.terrain.sample(E - self.origin[0], N - self.origin[1], ("ground", "risk"))
-        return (g - T[2, 3]).astype(np.float32), r
+        g, r, srf = self.world.terrain.sample(E - self.origin[0], N - self.origin[1], ("ground", "risk", "surface"))
+        seen = np.where(srf - g > 0.3, srf, g) if self.world.cfg.canopy else g
+        return (g - T[2, 3]).astype(np.float32), r, (seen - T[2, 3]).astype(np.float32)
+
+    def dem_heights(self, E: NDArray, N: NDArray) -> NDArray[np.float64]:
+        """Return what the DEM tiles hold at CRS points (E, N), noise aside: the terrain as
+        surveyed (before the terrain changes), from elsewhere in the shifted and wrong tile."""
+        from gtgen.synth.dem import altered_tiles
+
+        w = self.world
+        E, N = np.asarray(E, np.float64), np.asarray(N, np.float64)
+        du, dv = np.zeros(E.shape), np.zeros(E.shape)
+        tile = w.cfg.dem_tile_m
+        for (e0, n0), (de, dn) in altered_tiles(w).items():
+            inside = (E >= e0) & (E < e0 + tile) & (N >= n0) & (N < n0 + tile)
+            du[inside], dv[inside] = de, dn
+        u, v = E - self.origin[0] + du, N - self.origin[1] + dv
+        return w.terrain.sample(u, v, ("ground",))[0] - w.changes.height(u, v)
+
+    def ground(self, E: NDArray, N: NDArray) -> NDArray[np.float64]:
+        """Return the driven ground's height at CRS points (E, N)."""
+        return self.world.terrain.sample(np.asarray(E) - self.origin[0], np.asarray(N) - self.origin[1], ("ground",))[0].astype(np.float64)

@@ -9,8 +9,22 @@ from __future__ import annotations
 import numpy as np
 
 from gtgen.config import SynthConfig
-from gtgen.synth.drive import Drift, OdomFrame, Path, Poses, make_drift, make_path, true_poses
-from gtgen.synth.terrain import Obstacles, Terrain, place_obstacles
+from gtgen.synth.drive import (
+    Drift,
+    OdomFrame,
+    Path,
+    Poses,
+    make_drift,
+    make_path,
+    true_poses,
+)
+from gtgen.synth.terrain import (
+    Changes,
+    Obstacles,
+    Terrain,
+    place_changes,
+    place_obstacles,
+)
 
 T0_NS = 1_714_586_400_000_000_000  # 2024-05-01T18:00:00Z: a plausible field-test afternoon
 WORLD_MARGIN_M = 160.0
@@ -26,7 +40,8 @@ class SynthWorld:
         hi = self.path.uv.max(axis=0) + WORLD_MARGIN_M
         self.bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
         self.obstacles: Obstacles = place_obstacles(cfg, self.bounds, self.path.uv)
-        self.terrain = Terrain(cfg, self.obstacles)
+        self.changes: Changes = place_changes(cfg, self.path.uv)
+        self.terrain = Terrain(cfg, self.obstacles, self.changes)
         self.drift: Drift = make_drift(cfg, self.path)
         step = max(1, int(round(1.0 / (cfg.odom_rate_hz * 0.01))))
         self.pose_idx = np.arange(0, len(self.path.t_ns), step)

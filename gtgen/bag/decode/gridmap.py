@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.bag.reader import stamp_ns
 from gtgen.bag.decode.tf import frame_id
+from gtgen.bag.reader import stamp_ns
 from gtgen.errors import DecodeError
 from gtgen.geometry import quat_to_yaw
 

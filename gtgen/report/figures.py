@@ -1,0 +1,108 @@
+"""The report's QA figures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gtgen import codes
+from gtgen.config import RANGES
+from gtgen.report.stats import REGIONS
+
+
+def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    cov = rep.card.get("coverage", {})
+    for i, r in enumerate(cov):
+        keys = list(cov[r])
+        ax[0].bar(np.arange(len(keys)) + 0.4 * i, [100 * cov[r][k] for k in keys], width=0.4, label=r)
+        ax[0].set_xticks(np.arange(len(keys)) + 0.2, keys)
+    ax[0].set_ylabel("% of cells")
+    ax[0].set_title("label coverage per region")
+    ax[0].legend()
+    allfit = np.concatenate([fit, rfit[np.isfinite(rfit)]])
+    ax[1].hist(allfit, bins=30, range=(0, 1), color="tab:blue")
+    ax[1].set_title("ICP fitness (all aligned samples)")
+    ax[1].set_xlabel("fitness")
+    names = [codes.reason_name(c) for c in np.unique(rej_reason)]
+    vals = [int((rej_reason == c).sum()) for c in np.unique(rej_reason)]
+    ax[2].bar(["kept"] + names, [rep.card["samples_kept"]] + vals, color=["tab:green"] + ["tab:red"] * len(vals))
+    ax[2].set_title("samples kept / rejected by reason")
+    ax[2].tick_params(axis="x", rotation=30)
+    fig.tight_layout()
+    p = out_dir / "qa_overview.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    paths.append(p)
+    if rep.card["samples_kept"]:
+        en = g["meta/crs_en_m"][:]
+        fig, ax = plt.subplots(figsize=(6, 6))
+        sc = ax.scatter(en[:, 0], en[:, 1], c=fit, cmap="viridis", vmin=0, vmax=1, s=12)
+        ax.set_aspect("equal")
+        ax.set_title("sample positions (DEM CRS), colour = ICP fitness")
+        fig.colorbar(sc)
+        p = out_dir / "qa_track.png"
+        fig.savefig(p, dpi=80)
+        plt.close(fig)
+        paths.append(p)
+    if rep.truth:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for i, r in enumerate(RANGES):
+            vals = [rep.truth[r][reg]["elevation_mae_m"] or 0 for reg in REGIONS.values()]
+            ax.bar(np.arange(3) + 0.4 * i, vals, width=0.4, label=r)
+        ax.set_xticks(np.arange(3) + 0.2, list(REGIONS.values()))
+        ax.set_ylabel("elevation MAE vs truth [m]")
+        ax.set_title("label error against synth truth")
+        ax.legend()
+        p = out_dir / "qa_label_error.png"
+        fig.savefig(p, dpi=80)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+SIGNALS = (  # (dataset array of kept samples, of rejected ones, label, threshold key in dem config, above is bad)
+    ("meta/icp_fitness", "rejected/icp_fitness", "ICP fitness", "min_fitness", False),
+    ("meta/icp_rmse_m", "rejected/icp_rmse_m", "ICP inlier RMSE [m]", "max_rmse_m", True),
+    ("meta/dem_disagreement", "rejected/dem_disagreement", "share of ground disagreeing with the DEM", "max_disagreement", True),
+    ("meta/gnss_offset_m", "rejected/gnss_offset_m", "GNSS offset of the placed track [m]", "max_gnss_offset_m", True),
+    ("meta/vegetation_share", "rejected/vegetation_share", "share of observed cells left out as vegetation", None, True),
+)
+
+
+def signal_figure(g, dem_cfg, out_dir: Path) -> Path:
+    """Draw the distributions of the rejection signals, kept and rejected samples apart,
+    with the thresholds dem-align used."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7))
+    corr_k = g["meta/icp_correction"][:]
+    corr_r = g["rejected/icp_correction"][:]
+    panels = [(g[a][:], g[b][:], label, key) for a, b, label, key, _ in SIGNALS]
+    panels.insert(2, (np.hypot(corr_k[:, 0], corr_k[:, 1]), np.hypot(corr_r[:, 0], corr_r[:, 1]), "ICP correction xy [m]", "max_correction_m"))
+    for ax, (kept, rej, label, key) in zip(axes.ravel(), panels):
+        kept, rej = kept[np.isfinite(kept)], rej[np.isfinite(rej)]
+        both = np.concatenate([kept, rej])
+        bins = np.linspace(both.min(), both.max() + 1e-9, 30) if len(both) else 10
+        ax.hist([kept, rej], bins=bins, stacked=True, color=["tab:green", "tab:red"], label=["kept", "rejected"])
+        if key is not None:
+            ax.axvline(getattr(dem_cfg, key), color="k", ls="--", lw=1, label=f"dem.{key}")
+        ax.set_title(label, fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle("rejection signals of every sample ICP ran on")
+    fig.tight_layout()
+    p = out_dir / "qa_rejection_signals.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    return p
+

@@ -1,0 +1,106 @@
+"""How well dem-align's decisions did on a synthetic drive: every sample it placed (kept,
+rejected after ICP, or set aside with a tile it did not trust) against the truth, as a
+confusion table of kept / rejected by truly good / bad, with the reasons of each
+rejection. Samples that could not be placed (no DEM under them, too few observed cells, no
+fused maps) are counted apart.
+
+A sample is truly bad (``report.bad_*``) when its placement is farther from the truth
+than ``bad_vertical_m`` (or ``bad_horizontal_m``, if set), or when its DEM fill would be
+wrong by more than ``bad_fill_m`` on average over its short grid: the DEM height at the place the sample
+was put minus the true ground where each cell truly is. That counts a placement off where
+the terrain is not flat, a shifted or wrong tile and changed terrain alike. A kept sample
+is not filled from the tiles dem-align set aside, so they do not count in its fill; a
+sample set aside with them would have been filled from them, so for it they do.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gtgen import codes
+from gtgen.config import GtgenConfig
+from gtgen.geometry import grid_xy, yaw_transform
+from gtgen.report.stats import quantiles
+
+FOOTPRINT_STEP = 5  # every 5th short cell along each axis: enough for a share of the grid
+
+
+def _placed(g: Any) -> dict[str, np.ndarray]:
+    """Return every sample that got a placement: kept ones, then rejected ones ICP ran on or
+    set aside with a tile."""
+    rT = g["rejected/T_crs_target"][:]
+    reason = g["rejected/reason"][:]
+    has = np.isfinite(g["rejected/icp_fitness"][:]) | ((reason == codes.SUSPECT_TILE) & np.isfinite(rT[:, 0, 0]))
+    n = int(g["meta/t_ns"].shape[0])
+    return {
+        "t": np.concatenate([g["meta/t_ns"][:], g["rejected/t_ns"][:][has]]),
+        "T": np.concatenate([g["meta/T_crs_target"][:], rT[has]]),
+        "pos": np.concatenate([g["meta/pos_odom_m"][:], g["rejected/pos_odom_m"][:][has]]),
+        "yaw": np.concatenate([g["meta/yaw_odom_rad"][:], g["rejected/yaw_odom_rad"][:][has]]),
+        "reason": np.concatenate([np.zeros(n, np.uint8), reason[has]]),
+    }
+
+
+def _set_aside(attrs: Any, crs: str) -> list[tuple[float, float, float, float]]:
+    """Return the bounds (working CRS) of the DEM tiles dem-align did not use."""
+    import rasterio
+    from rasterio.warp import transform_bounds
+
+    out = []
+    for d in attrs.drives:
+        for path in d.suspect_tiles:
+            with rasterio.open(path) as ds:
+                out.append(transform_bounds(ds.crs, crs, *ds.bounds))
+    return out
+
+
+def rejection_truth(g: Any, cfg: GtgenConfig, truth: Any, attrs: Any) -> dict[str, Any]:
+    """Return the confusion table, the reasons per class, and the placement errors of the
+    placed samples and of the GNSS fit alone."""
+    rc = cfg.report
+    p = _placed(g)
+    if not len(p["t"]):
+        return {}
+    crs = attrs.drives[0].crs
+    aside = _set_aside(attrs, crs)
+    gs = cfg.grids.short
+    X, Y = (a[::FOOTPRINT_STEP, ::FOOTPRINT_STEP] for a in grid_xy(gs.size, gs.resolution_m))
+    al = attrs.drives[0].alignment
+    T_gnss = yaw_transform(al["gnss_tx_m"], al["gnss_ty_m"], al["dz_dem_m"], al["gnss_yaw_rad"])
+    rows = []
+    for i in range(len(p["t"])):
+        T_odom_target = yaw_transform(*p["pos"][i], p["yaw"][i])
+        T_true = truth.T_crs_odom(int(p["t"][i])) @ T_odom_target
+        h = float(np.hypot(*(p["T"][i][:2, 3] - T_true[:2, 3])))
+        v = float(abs(p["T"][i][2, 3] - T_true[2, 3]))
+        Tu = p["T"][i]
+        Eu, Nu = Tu[0, 0] * X + Tu[0, 1] * Y + Tu[0, 3], Tu[1, 0] * X + Tu[1, 1] * Y + Tu[1, 3]
+        Et, Nt = T_true[0, 0] * X + T_true[0, 1] * Y + T_true[0, 3], T_true[1, 0] * X + T_true[1, 1] * Y + T_true[1, 3]
+        used = np.ones(Eu.shape, bool)
+        for l, b, r, t in aside if p["reason"][i] != codes.SUSPECT_TILE else ():
+            used &= ~((Eu >= l) & (Eu < r) & (Nu > b) & (Nu <= t))
+        fill_err = (truth.dem_heights(Eu, Nu) - Tu[2, 3]) - (truth.ground(Et, Nt) - T_true[2, 3])
+        wrong = float(np.abs(fill_err)[used].mean()) if used.any() else 0.0
+        G = T_gnss @ T_odom_target
+        gyaw = np.degrees(abs(np.arctan2(G[1, 0] * T_true[0, 0] - G[0, 0] * T_true[1, 0], G[0, 0] * T_true[0, 0] + G[1, 0] * T_true[1, 0])))
+        rows.append((h, v, wrong, float(np.hypot(*(G[:2, 3] - T_true[:2, 3]))), float(abs(G[2, 3] - T_true[2, 3])), float(gyaw)))
+    h, v, wrong, gh, gv, gy = (np.array(c) for c in zip(*rows))
+    far = h > rc.bad_horizontal_m if rc.bad_horizontal_m is not None else np.zeros(len(h), bool)
+    bad = far | (v > rc.bad_vertical_m) | (wrong > rc.bad_fill_m)
+    kept = p["reason"] == codes.OK
+    return {
+        "confusion": {"kept": {"good": int((kept & ~bad).sum()), "bad": int((kept & bad).sum())},
+                      "rejected": {"good": int((~kept & ~bad).sum()), "bad": int((~kept & bad).sum())}},
+        "bad_rejected_pct": round(100.0 * (~kept & bad).sum() / max(bad.sum(), 1), 1) if bad.any() else None,
+        "good_kept_pct": round(100.0 * (kept & ~bad).sum() / max((~bad).sum(), 1), 1) if (~bad).any() else None,
+        "reasons": {cls: codes.reason_counts(p["reason"][(~kept) & sel]) for cls, sel in (("bad", bad), ("good", ~bad))},
+        "placement_error": {"horizontal_m": quantiles(h[kept]), "vertical_m": quantiles(v[kept])},
+        "gnss_fit_alone_error": {"horizontal_m": quantiles(gh), "vertical_m": quantiles(gv), "yaw_deg": quantiles(gy)},
+        "bad_by": {"horizontal": int(far.sum()), "vertical": int((v > rc.bad_vertical_m).sum()),
+                   "fill": int((wrong > rc.bad_fill_m).sum())},
+        "fill_error_m": {"kept": quantiles(wrong[kept]), "rejected": quantiles(wrong[~kept])},
+        "not_placed": codes.reason_counts(g["rejected/reason"][:][~np.isin(g["rejected/t_ns"][:], p["t"])]),
+        "bad_definition": rc.model_dump(),
+    }
