@@ -1,4 +1,6 @@
-"""Training speed and memory of the tiny preset on CPU; paper preset forward time."""
+"""Training speed and memory of the tiny preset on CPU, the samples per second ShardDataset
+delivers through a DataLoader with 0 and 2 workers (it must keep a GPU fed: >= 50/s on 2
+cores), and the paper preset's forward time."""
 
 from __future__ import annotations
 
@@ -24,6 +26,29 @@ with torch.no_grad():
 print(dt, sum(p.numel() for p in m.parameters()))
 """
 
+LOADER = """
+import sys, time, torch
+from pathlib import Path
+from torch.utils.data import DataLoader
+from gtgen.config import load_config
+from gtgen.train.trainer import preset_overrides, _collate
+from gtgen.train.data import ShardDataset
+cfg = load_config(None, preset_overrides("tiny"))
+ds = ShardDataset(Path(sys.argv[1]), cfg.train, split="train")
+workers = int(sys.argv[2])
+dl = DataLoader(ds, batch_size=cfg.train.batch_size, shuffle=True, num_workers=workers, collate_fn=_collate,
+                generator=torch.Generator().manual_seed(0), persistent_workers=workers > 0)
+it = iter(dl); next(it)  # workers started, first batch out
+n, t = 0, time.perf_counter()
+while n < 120:
+    try:
+        b = next(it)
+    except StopIteration:
+        it = iter(dl); continue
+    n += len(b["index"])
+print(n / (time.perf_counter() - t))
+"""
+
 if __name__ == "__main__":
     header("bench/train.py")
     d = drive(120)
@@ -40,6 +65,9 @@ if __name__ == "__main__":
     print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
     import subprocess, sys
 
+    for workers in (0, 2):
+        p = subprocess.run([sys.executable, "-c", LOADER, str(ws / "dataset.zarr"), str(workers)], capture_output=True, text=True, check=True)
+        print(f"ShardDataset (tiny preset) through a DataLoader with {workers} workers: {float(p.stdout.split()[-1]):.1f} samples/s")
     p = subprocess.run([sys.executable, "-c", FORWARD], capture_output=True, text=True, check=True)
     fw, n = p.stdout.split()
     print(f"paper preset: {int(n) / 1e6:.1f} M parameters; forward pass of one sample on CPU {float(fw) * 1000:.0f} ms (paper: 100 ms on a GPU)")

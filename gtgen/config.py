@@ -241,11 +241,12 @@ class ShardsConfig(_Model):
 
     val_fraction: float = Field(0.25, ge=0, lt=1, description="share of geography blocks held out")
     split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")
-    max_voxel_points: int = Field(60000, ge=1, description="voxel-map points kept per sample")
+    max_voxel_points: int = Field(60000, ge=1, description="voxel-map points kept per map: all of them near the vehicle, and beyond the radius that keeps them within this count one per far_voxel_m voxel")
+    far_voxel_m: float = Field(0.8, gt=0, description="voxel edge of the far part of a voxel map that exceeds max_voxel_points [m]")
 
 
 class TrainConfig(_Model):
-    """The M&M-lite trainer; presets live in ``configs/presets/``."""
+    """The M&M-lite trainer; presets in ``gtgen.train.presets``, mirrored in ``configs/presets/``."""
 
     preset: str = Field("tiny", description="name of the preset the values came from")
     micro_size: int = Field(500, ge=8, description="micro grid cells the model predicts")
@@ -266,8 +267,10 @@ class TrainConfig(_Model):
     gamma: float = Field(5.0, ge=0, description="consistency loss weight")
     elevation_clip_m: float = Field(25.0, gt=0, description="elevation clip, scaled to +-1 [m]")
     elevation_beta_m: float = Field(0.2, gt=0, description="Smooth-L1 transition of the elevation and consistency losses [m]; the default 1 scaled unit (25 m) leaves decimetre errors almost no gradient")
-    prior_window_m: float = Field(4.0, ge=0, description="window of the smoothed min-z prior the heads correct [m]")
+    prior_window_m: float = Field(4.0, ge=0, description="smoothing window of the min-z prior the heads correct (filled beyond the points) [m]")
     fatal_risk: float = Field(0.5, gt=0, lt=1, description="fatal-risk threshold for P/R/F1")
+    risk_loss: Literal["mse", "weighted_mse", "weighted_bce"] = Field("weighted_bce", description="risk loss: the paper's MSE, or MSE / binary cross-entropy with the fatal cells weighted risk_fatal_weight times")
+    risk_fatal_weight: float = Field(10.0, ge=1, description="weight of the fatal cells (label >= fatal_risk) in weighted_mse and weighted_bce")
     lr: float = Field(5e-4, gt=0, description="peak learning rate (OneCycle)")
     steps: int = Field(16000, ge=1, description="optimizer steps")
     batch_size: int = Field(4, ge=1, description="samples per step")

@@ -1,4 +1,6 @@
-"""Rewrite the generated tables of data_schema.md from the formats in gtgen/storage/schema.py."""
+"""Rewrite the files generated from code: the tables of data_schema.md (from the formats in
+gtgen/storage/schema.py), configs/default.yaml (from gtgen.config) and configs/presets/
+(from gtgen.train.presets)."""
 
 from __future__ import annotations
 
@@ -20,8 +22,21 @@ def render(text: str) -> str:
     return text
 
 
+def write_configs(root: Path) -> None:
+    """Write configs/default.yaml and configs/presets/*.yaml from the code."""
+    from gtgen.config import default_yaml
+    from gtgen.train.presets import PRESETS, preset_yaml
+
+    (root / "configs" / "default.yaml").write_text(default_yaml().strip() + "\n")
+    for name in PRESETS:
+        (root / "configs" / "presets" / f"{name}.yaml").write_text(preset_yaml(name))
+
+
 if __name__ == "__main__":
-    doc = Path(__file__).resolve().parent.parent / "data_schema.md"
+    root = Path(__file__).resolve().parent.parent
+    doc = root / "data_schema.md"
+    if "--check" not in sys.argv:
+        write_configs(root)
     new = render(doc.read_text())
     if "--check" in sys.argv:
         sys.exit(0 if new == doc.read_text() else 1)

@@ -71,7 +71,7 @@ def test_canopy_and_bushes_stand_above_the_bare_ground():
     cfg = SynthConfig(seed=4, duration_s=20, canopy=True, bushes_per_ha=200, trees_per_ha=20)
     w = SynthWorld(cfg)
     assert len(w.obstacles.bush_uv) > 0
-    (bu, bv), br, bh = w.obstacles.bush_uv[0], w.obstacles.bush_radius[0], w.obstacles.bush_height[0]
+    (bu, bv), bh = w.obstacles.bush_uv[0], w.obstacles.bush_height[0]
     g = w.terrain.eval_grid(bu - 0.15, bv - 0.15, 0.1, 3, 3)
     assert float(g["surface"][1, 1] - g["ground"][1, 1]) == pytest.approx(bh, rel=0.05)
     assert isinstance(w.terrain, Terrain)

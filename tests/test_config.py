@@ -13,6 +13,20 @@ def test_default_yaml_lists_every_key_and_matches_the_models():
     assert build_config(yaml.safe_load(text)) == GtgenConfig()
 
 
+def test_presets_yaml_mirror_the_code_and_load():
+    from gtgen.train.presets import PRESETS, preset_overrides, preset_yaml
+
+    files = {p.stem: p for p in (configs_dir() / "presets").glob("*.yaml")}
+    assert set(files) == set(PRESETS)
+    for name, p in files.items():
+        assert p.read_text() == preset_yaml(name), f"configs/presets/{name}.yaml is stale: run scripts/update_schema_doc.py"
+        layer = preset_overrides(name)
+        assert load_config(None, layer).train.preset == name
+        assert load_config(p).train.micro_size == PRESETS[name].train["micro_size"]
+    with pytest.raises(ConfigError, match="unknown; expected one of"):
+        preset_overrides("huge")
+
+
 def test_xracer_yaml_is_the_default_topic_mapping():
     assert load_config(configs_dir() / "xracer.yaml") == GtgenConfig()
 

@@ -10,7 +10,7 @@ import torch
 
 from conftest import run_cli
 from gtgen.config import GtgenConfig, load_config
-from gtgen.errors import StoreError, TrainError
+from gtgen.errors import ConfigError, StoreError, TrainError
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 
 SMALL_TRAIN = {"train": {"micro_size": 32, "short_size": 32, "image_width": 48, "image_height": 30, "depth_step_m": 8.0,
@@ -54,7 +54,9 @@ def test_overfitting_a_fixed_batch(dataset):
     from gtgen.train.loss import total_loss
     from gtgen.train.trainer import _collate, build_model, seed_everything
 
-    cfg = load_config(None, SMALL_TRAIN)
+    # the paper's MSE risk loss: a fitted batch drives it to zero (the cross-entropy of soft
+    # risk labels keeps their entropy)
+    cfg = load_config(None, SMALL_TRAIN, {"train": {"risk_loss": "mse"}})
     seed_everything(0)
     ds = ShardDataset(dataset, cfg.train)
     batch = _collate([ds[0], ds[1]])
@@ -129,3 +131,125 @@ def test_bad_datasets(dataset, tmp_path):
     assert p.returncode == 1 and "no samples" in p.stderr and "Traceback" not in p.stderr
     p = run_cli("train", dataset, "--preset", "huge", cwd=tmp_path)
     assert p.returncode == 1 and "preset 'huge' unknown" in p.stderr
+
+
+def test_filled_prior_and_nearest_baseline_by_hand():
+    from gtgen.train.data import filled, nearest_filled, point_distance
+
+    g = np.full((9, 9), np.nan)
+    g[4, 0:3] = [1.0, 2.0, 3.0]
+    near = nearest_filled(g)
+    assert near[4, 8] == 3.0 and near[0, 0] == 1.0 and near[4, 1] == 2.0  # nearest valid cell's value
+    f = filled(g)
+    assert np.isfinite(f).all() and f[4, 1] == 2.0  # valid cells keep their value
+    assert 1.0 <= f.min() and f.max() <= 3.0  # a weighted mean of the valid cells
+    assert f[4, 8] > f[4, 0]  # far to the right, nearer the 3 than the 1
+    assert np.all(filled(np.full((4, 4), np.nan)) == 0) and np.isnan(nearest_filled(np.full((2, 2), np.nan))).all()
+    d = point_distance(g)
+    assert d[4, 1] == 0 and d[4, 8] == pytest.approx(6 / 9)
+
+
+def test_weighted_risk_loss_weighs_fatal_cells():
+    from gtgen.train.loss import risk_loss
+
+    label = torch.tensor([1.0, 0.0, 0.0, 0.0, float("nan")])
+    logit = torch.full((5,), -4.0)
+    pred = {"r/risk": torch.sigmoid(logit), "r/risk_logit": logit}  # "no risk anywhere"
+    p = float(torch.sigmoid(torch.tensor(-4.0)))
+
+    def loss(**train):
+        return float(risk_loss(pred, "r", label, load_config(None, {"train": train}).train))
+
+    assert loss(risk_loss="mse") == pytest.approx(((1 - p) ** 2 + 3 * p**2) / 4)
+    assert loss(risk_loss="weighted_mse", risk_fatal_weight=10) == pytest.approx((10 * (1 - p) ** 2 + 3 * p**2) / 13)
+    bce_fatal, bce_safe = -np.log(p), -np.log(1 - p)
+    assert loss(risk_loss="weighted_bce", risk_fatal_weight=10) == pytest.approx((10 * bce_fatal + 3 * bce_safe) / 13, rel=1e-5)
+
+
+@pytest.mark.parametrize("ablation", [{"alpha": 0.0}, {"gamma": 0.0}])
+def test_loss_ablations_train_one_step(dataset, tmp_path, ablation):
+    from gtgen.train.data import ShardDataset
+    from gtgen.train.loss import total_loss
+    from gtgen.train.trainer import _collate, build_model, train
+
+    cfg = load_config(None, SMALL_TRAIN, {"train": ablation})
+    res = train(dataset, tmp_path / "run", cfg, max_steps=1)
+    assert res.steps == 1 and np.isfinite(res.last_loss)
+    ds = ShardDataset(dataset, cfg.train)
+    batch = _collate([ds[0], ds[1]])
+    model = build_model(cfg.train, ds.data_cfg).eval()
+    with torch.no_grad():
+        pred = model(batch)
+        base, parts = total_loss(pred, batch, cfg.train)
+        if "alpha" in ablation:  # the unobserved cells' labels no longer count
+            other = dict(batch)
+            for r in ("micro", "short"):
+                other[f"{r}/elevation"] = torch.where(batch[f"{r}/region"] == 3, batch[f"{r}/elevation"] + 0.5, batch[f"{r}/elevation"])
+            assert float(total_loss(pred, other, cfg.train)[0]) == pytest.approx(float(base))
+        else:  # the consistency term is logged but not added
+            tc = cfg.train
+            assert float(base) == pytest.approx(sum(tc.mu * parts[f"{r}/trav"] + tc.lam * parts[f"{r}/ele"] for r in ("micro", "short")), rel=1e-5)
+
+
+def test_seeds_train_and_eval_mean_and_spread(dataset, tmp_path):
+    import yaml
+
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    p = run_cli("train", dataset, "--steps", "1", "--seeds", "2", "--run", tmp_path / "runs" / "tiny", "--config", c, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "runs" / "tiny-seed0" / "ckpt.pt").is_file() and (tmp_path / "runs" / "tiny-seed1" / "ckpt.pt").is_file()
+    p = run_cli("eval", dataset, "--ckpt", str(tmp_path / "runs" / "tiny-seed*" / "ckpt.pt"), "--split", "all", "-o", tmp_path / "e.json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "mean ± spread of 2 seeds" in p.stdout and "X-Racer's cells" in p.stdout and "nearest-filled" in p.stdout
+    res = json.loads((tmp_path / "e.json").read_text())
+    assert len(res["runs"]) == 2
+    a, b = (r["elevation"]["short"]["model"]["total"]["mae_m"] for r in res["runs"])
+    assert res["elevation"]["short"]["model"]["total"]["mae_m"] == pytest.approx((a + b) / 2)
+    assert res["spread"]["elevation"]["short"]["model"]["total"]["mae_m"] == pytest.approx(abs(a - b) / np.sqrt(2))
+    near = res["elevation"]["short"]["raw_nearest"]["total"]
+    assert near["coverage_pct"] == pytest.approx(100.0)  # the trivial baseline covers every labelled cell
+    xr = res["elevation"]["short"]["model_on_xracer_cells"]["total"]["coverage_pct"]
+    assert xr == pytest.approx(res["elevation"]["short"]["xracer"]["total"]["coverage_pct"])
+    p = run_cli("eval", dataset, "--ckpt", str(tmp_path / "nothing*" / "ckpt.pt"), cwd=tmp_path)
+    assert p.returncode == 1 and "matches no checkpoint" in p.stderr
+
+
+def test_bad_training_input_one_line(dataset, tmp_path):
+    import shutil
+
+    import yaml
+    import zarr
+
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    p = run_cli("train", dataset, "--steps", "1", "--run", tmp_path / "run", "--config", c, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    # a dataset whose val split is empty
+    only_train = tmp_path / "only_train.zarr"
+    shutil.copytree(dataset, only_train)
+    g = zarr.open_group(str(only_train), mode="r+")
+    g["meta/split"][:] = 0
+    p = run_cli("eval", only_train, "--ckpt", tmp_path / "run" / "ckpt.pt", cwd=tmp_path)
+    assert p.returncode == 1 and "no 'val' samples" in p.stderr and "--split all" in p.stderr and "Traceback" not in p.stderr
+    # an old checkpoint format
+    state = torch.load(tmp_path / "run" / "ckpt.pt", map_location="cpu", weights_only=False)
+    state["version"] = 2
+    torch.save(state, tmp_path / "old.pt")
+    p = run_cli("eval", dataset, "--ckpt", tmp_path / "old.pt", "--split", "all", cwd=tmp_path)
+    assert p.returncode == 1 and "version 3 (found 2)" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    # grids the model cannot tile
+    from gtgen.train.trainer import build_model
+
+    with pytest.raises(ConfigError, match="micro grid must span 100 m"):
+        build_model(GtgenConfig().train, load_config(None, {"grids": {"micro": {"size": 400}}}))
+    with pytest.raises(ConfigError, match="short_size 8"):
+        build_model(load_config(None, {"train": {"short_size": 8}}).train, GtgenConfig())
+
+
+def test_paper_preset_runs_one_step_on_cpu(dataset, tmp_path):
+    from gtgen.train.trainer import preset_overrides, train
+
+    cfg = load_config(None, preset_overrides("paper"), {"train": {"batch_size": 1, "workers": 0}})
+    res = train(dataset, tmp_path / "paper", cfg, max_steps=1)
+    assert res.steps == 1 and np.isfinite(res.last_loss)

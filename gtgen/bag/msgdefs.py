@@ -1,4 +1,5 @@
-"""Message definitions gtgen ships for bags that carry none (grid_map_msgs)."""
+"""Message definitions gtgen ships: grid_map_msgs for bags that carry none, and the ROS 2
+foxglove_msgs Grid that ``gtgen export mcap`` writes (so no network is needed for them)."""
 
 from __future__ import annotations
 
@@ -42,6 +43,34 @@ geometry_msgs/Pose pose
 """
 
 TFMESSAGE_ROS1 = "geometry_msgs/TransformStamped[] transforms\n"
+
+# foxglove_msgs (ROS 2), as in github.com/foxglove/schemas: the grid Foxglove's 3D panel draws
+FOXGLOVE_GRID = """\
+builtin_interfaces/Time timestamp
+string frame_id
+geometry_msgs/Pose pose
+uint32 column_count
+foxglove_msgs/Vector2 cell_size
+uint32 row_stride
+uint32 cell_stride
+foxglove_msgs/PackedElementField[] fields
+uint8[] data
+"""
+FOXGLOVE_VECTOR2 = "float64 x\nfloat64 y\n"
+FOXGLOVE_PACKED_FIELD = """\
+uint8 UNKNOWN=0
+uint8 UINT8=1
+uint8 INT8=2
+uint8 UINT16=3
+uint8 INT16=4
+uint8 UINT32=5
+uint8 INT32=6
+uint8 FLOAT32=7
+uint8 FLOAT64=8
+string name
+uint32 offset
+uint8 type
+"""
 
 GRIDMAP = "grid_map_msgs/msg/GridMap"
 GRIDMAPINFO = "grid_map_msgs/msg/GridMapInfo"
@@ -87,4 +116,8 @@ def typestore(ros1: bool) -> Typestore:
     store.register(gridmap_types(ros1))
     if "tf2_msgs/msg/TFMessage" not in store.types:  # not in rosbags' noetic store
         store.register(get_types_from_msg(TFMESSAGE_ROS1, "tf2_msgs/msg/TFMessage"))
+    if not ros1:
+        for text, name in ((FOXGLOVE_VECTOR2, "foxglove_msgs/msg/Vector2"), (FOXGLOVE_PACKED_FIELD, "foxglove_msgs/msg/PackedElementField"),
+                           (FOXGLOVE_GRID, "foxglove_msgs/msg/Grid")):
+            store.register(get_types_from_msg(text, name))
     return store

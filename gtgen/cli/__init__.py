@@ -5,6 +5,7 @@
 from gtgen.cli import stages  # noqa: F401, I001
 from gtgen.cli import views  # noqa: F401
 from gtgen.cli import learn  # noqa: F401
+from gtgen.cli import export  # noqa: F401
 from gtgen.cli.app import app, main
 
 __all__ = ["app", "main"]

@@ -15,9 +15,10 @@ from gtgen.errors import GtgenError
 def train_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
     preset: str = typer.Option("tiny", help="tiny (CPU, minutes) | paper (paper sizes, GPU)"),
-    run: Optional[Path] = typer.Option(None, "--run", help="run folder [default: runs/<preset>]"),
+    run: Optional[Path] = typer.Option(None, "--run", help="run folder [default: runs/<preset>, or runs/<preset>-seed<k> with --seeds]"),
     resume: bool = typer.Option(False, help="continue from the run folder's checkpoint"),
     steps: Optional[int] = typer.Option(None, help="stop after this many more steps (the schedule keeps the preset's total)"),
+    seeds: int = typer.Option(1, min=1, help="train this many seeds (train.seed, +1, ...), one run folder each"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Train M&M-lite on the dataset's train split; checkpoints, metrics JSON, resolved config.
@@ -25,6 +26,7 @@ def train_cmd(
     **Examples**
 
         gtgen train                                # tiny preset on ./gtgen_ws/dataset.zarr -> runs/tiny/
+        gtgen train --seeds 3                      # runs/tiny-seed0, -seed1, -seed2 (then: gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt')
         gtgen train --preset paper --config gpu.yaml
         gtgen train --resume --run runs/tiny
     """
@@ -33,63 +35,98 @@ def train_cmd(
 
     layer = preset_overrides(preset)
     cfg = load_config(None, layer) if config is None else load_config(None, layer, read_yaml(config))
-    run_dir = run or Path("runs") / preset
-    res = train(dataset, run_dir, cfg, resume=resume, max_steps=steps)
-    table("gtgen train", [
-        ("run", res.run_dir), ("checkpoint", res.ckpt), ("steps", res.steps),
-        ("loss first -> last", f"{res.first_loss:.4f} -> {res.last_loss:.4f}"),
-        ("time", f"{res.seconds:.1f} s ({res.steps and res.seconds / max(res.steps, 1):.2f} s/step this run)"),
-    ])
+    rows: list[tuple[str, Any]] = []
+    for i in range(seeds):
+        seed = cfg.train.seed + i
+        one = cfg.model_copy(update={"train": cfg.train.model_copy(update={"seed": seed})})
+        base = run or Path("runs") / preset
+        run_dir = base if seeds == 1 else base.with_name(f"{base.name}-seed{seed}")
+        res = train(dataset, run_dir, one, resume=resume, max_steps=steps)
+        tag = "" if seeds == 1 else f" (seed {seed})"
+        rows += [
+            (f"run{tag}", res.run_dir), (f"checkpoint{tag}", res.ckpt), (f"steps{tag}", res.steps),
+            (f"loss first -> last{tag}", f"{res.first_loss:.4f} -> {res.last_loss:.4f}"),
+            (f"time{tag}", f"{res.seconds:.1f} s ({res.steps and res.seconds / max(res.steps, 1):.2f} s/step this run)"),
+        ]
+    table("gtgen train", rows)
+
+
+def _checkpoints(patterns: list[Path]) -> list[Path]:
+    """Return the checkpoints ``--ckpt`` names, each a path or a quoted glob pattern."""
+    import glob
+
+    out: list[Path] = []
+    for p in patterns:
+        hits = sorted(glob.glob(str(p))) if glob.has_magic(str(p)) else [str(p)]
+        if not hits:
+            raise GtgenError(f"--ckpt {str(p)!r} matches no checkpoint")
+        out += [Path(h) for h in hits]
+    return out
+
+
+def _cell(res: dict, path: tuple[str, ...], coverage: bool = False) -> str:
+    """Return a table cell: the metric at ``path`` (an MAE with its coverage if
+    ``coverage``), with '± spread' when several seeds were evaluated."""
+    node, sp = res, res.get("spread")
+    for k in path:
+        node, sp = node[k], (sp[k] if sp is not None else None)
+    val, s = (node["mae_m"], sp["mae_m"] if sp is not None else None) if coverage else (node, sp)
+    text = fmt(val) + (f" ± {fmt(s)}" if s is not None else "")
+    return text + (f" ({fmt(node['coverage_pct'], True)})" if coverage else "")
 
 
 @app.command("eval")
 def eval_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset to evaluate on"),
-    ckpt: Path = typer.Option(Path("runs/latest/ckpt.pt"), "--ckpt", help="checkpoint from 'gtgen train'"),
+    ckpt: list[Path] = typer.Option([Path("runs/latest/ckpt.pt")], "--ckpt", help="checkpoint from 'gtgen train'; repeat it, or quote a glob, for several seeds (mean ± spread)"),
     preset: Optional[str] = typer.Option(None, help="refuse a checkpoint of another preset"),
-    split: str = typer.Option("val", help="val | train | all (val falls back to all when empty)"),
-    viz: Optional[int] = typer.Option(None, "--viz", help="also draw this sample with the predictions"),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the checkpoint]"),
+    split: str = typer.Option("val", help="val | train | all"),
+    viz: Optional[int] = typer.Option(None, "--viz", help="also draw this sample with the predictions (of the first checkpoint)"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the (first) checkpoint]"),
 ) -> None:
     """Paper-style tables: elevation MAE per region, risk MSE/P/R/F1, consistency; baselines.
 
     **Examples**
 
         gtgen eval --ckpt runs/latest/ckpt.pt
+        gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'            # mean ± spread over the seeds
         gtgen eval datasets/test.zarr --ckpt runs/paper/ckpt.pt --split all --viz 3
     """
     import json
 
     from rich.table import Table
 
-    from gtgen.train.trainer import evaluate
+    from gtgen.train.trainer import EVAL_ROWS, evaluate, evaluate_seeds
 
     if split not in ("val", "train", "all"):
         raise GtgenError(f"--split {split!r} unknown; expected one of ['val', 'train', 'all']")
-    res = evaluate(dataset, ckpt, preset, None if split == "all" else split)
+    ckpts = _checkpoints(ckpt)
+    sp = None if split == "all" else split
+    res = evaluate(dataset, ckpts[0], preset, sp) if len(ckpts) == 1 else evaluate_seeds(dataset, ckpts, sp)
+    if preset is not None and len(ckpts) > 1 and res["preset"] != preset:
+        raise GtgenError(f"checkpoints are of preset {res['preset']!r}, not {preset!r}")
     con = console()
+    seeds = f", mean ± spread of {len(ckpts)} seeds" if len(ckpts) > 1 else ""
     for r in ("micro", "short"):
-        t = Table(title=f"{r} range: elevation MAE [m] (coverage of labelled cells) on {res['split']} ({res['samples']} samples)")
+        t = Table(title=f"{r} range: elevation MAE [m] (coverage of labelled cells) on {res['split']} ({res['samples']} samples{seeds})")
         for col in ("method", "obs PC", "obs F", "unobs", "total"):
             t.add_column(col)
-        names = {"model": "M&M-lite", "model_on_raw_cells": "M&M-lite on the raw cells", "xracer": "X-Racer at t", "raw": "raw elevation (min z)"}
-        for m, tab in res["elevation"][r].items():
-            cells = [f"{fmt(tab[k]['mae_m'])} ({fmt(tab[k]['coverage_pct'], True)})" if m not in ("model",) else fmt(tab[k]["mae_m"]) for k in ("obs_pc", "obs_f", "unobs", "total")]
-            t.add_row(names[m], *cells)
+        for m in res["elevation"][r]:
+            t.add_row(EVAL_ROWS[m], *(_cell(res, ("elevation", r, m, k), coverage=True) for k in ("obs_pc", "obs_f", "unobs", "total")))
         con.print(t)
-        t = Table(title=f"{r} range: risk (fatal >= threshold)")
+        t = Table(title=f"{r} range: risk (fatal >= threshold){seeds}")
         for col in ("method", "MSE", "precision", "recall", "F1", "coverage"):
             t.add_column(col)
         for m, tab in res["risk"][r].items():
-            t.add_row(names[m], fmt(tab["mse"]), fmt(tab["precision"]), fmt(tab["recall"]), fmt(tab["f1"]), fmt(tab["coverage_pct"], True))
+            t.add_row(EVAL_ROWS[m], *(_cell(res, ("risk", r, m, k)) for k in ("mse", "precision", "recall", "f1")), fmt(tab["coverage_pct"], True))
         con.print(t)
-    out = out or ckpt.parent / "eval.json"
+    out = out or ckpts[0].parent / "eval.json"
     out.write_text(json.dumps(res, indent=1))
-    rows: list[tuple[str, Any]] = [("consistency MAE", f"{fmt(res['consistency_mae_m'])} m"), ("metrics", out)]
+    rows: list[tuple[str, Any]] = [("consistency MAE", f"{_cell(res, ('consistency_mae_m',))} m"), ("metrics", out)]
     if viz is not None:
         from gtgen.train.trainer import predict_sample
         from gtgen.viz import render_sample
 
-        png = render_sample(dataset, viz, ckpt.parent / f"pred_{viz}.png", predict_sample(dataset, ckpt, viz))
+        png = render_sample(dataset, viz, ckpts[0].parent / f"pred_{viz}.png", predict_sample(dataset, ckpts[0], viz))
         rows.append(("prediction figure", png))
     table("gtgen eval", rows)

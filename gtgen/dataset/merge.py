@@ -6,7 +6,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from gtgen.config import GtgenConfig, save_config
+from gtgen.config import GtgenConfig
 from gtgen.dataset.run import dataset_attrs
 from gtgen.dataset.split import split_counts
 from gtgen.dataset.writer import ShardWriter
@@ -45,7 +45,6 @@ class DatasetMerger:
             raise GtgenError("no drive to merge: every drive failed")
         first = {"image_size": self._first.image_size, "cameras": self._first.cameras}
         n = self.writer.close(dataset_attrs(self.cfg, self.drives, first, provenance))
-        save_config(self.cfg, self.tmp / "gtgen-config.yaml")
         return n, split_counts(self.writer.root["meta/split"][:]) if n else {}
 
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from gtgen import __version__, codes
-from gtgen.config import GtgenConfig, save_config
+from gtgen.config import GtgenConfig
 from gtgen.dataset.assemble import Context, Kept, build_block
 from gtgen.dataset.split import split_counts
 from gtgen.dataset.writer import ShardWriter
@@ -94,7 +94,6 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
                 blocks.finish()
         entry = drive_entry(drive_path, drive, crs, placement, suspect_tiles=[index.tiles[i].path for i in sorted(suspect)])
         n = writer.close(dataset_attrs(cfg, [entry], drive.attrs))
-        save_config(cfg, tmp / "gtgen-config.yaml")
         splits = split_counts(writer.root["meta/split"][:]) if n else {}
     return AlignResult(out, int(drive["samples/t_ns"].shape[0]), n, writer.rejected_counts(), placement.fit,
                        placement.dz_dem, placement.geoid_offset_m, crs, fitness, splits)

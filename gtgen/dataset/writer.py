@@ -13,7 +13,9 @@ from gtgen import codes
 from gtgen.runtime.progress import track
 from gtgen.storage.chunks import Encoded, RowAppender, compressors, encode_row
 from gtgen.storage.schema import (
+    COORDS,
     DATASET,
+    TIME_ATTRS,
     POINTS_PER_CHUNK,
     SAMPLE_ARRAYS,
     SAMPLES_PER_SHARD,
@@ -144,8 +146,29 @@ class ShardWriter:
                                          dimension_names=dimension_names(s))
             if R:
                 arr[:] = col
+        self._coordinates(attrs)
         self.root.attrs.update(attrs.model_dump(mode="json"))
         return self.n
+
+    def _coordinates(self, attrs: DatasetAttrs) -> None:
+        """Write the dimension coordinates (``schema.COORDS``): cell centres of each grid,
+        and the sample times."""
+        from gtgen.config import GtgenConfig
+        from gtgen.geometry import cell_centers
+
+        grids = GtgenConfig.model_validate(attrs.config).grids
+        t = self.root["meta/t_ns"][:] if self.n else np.zeros(0, np.int64)
+        for s in COORDS:
+            group, leaf = s.path.rsplit("/", 1)
+            if leaf == "sample":
+                value, extra = t, TIME_ATTRS
+            else:
+                g = grids.get("micro" if group.endswith("micro") else "short")
+                value, extra = cell_centers(g.size, g.resolution_m), {}
+            arr = self.root.create_array(s.path, shape=value.shape, dtype=s.dtype, chunks=(max(len(value), 1),), fill_value=0,
+                                         dimension_names=dimension_names(s), attributes={"units": s.units, "long_name": s.doc, **extra})
+            if len(value):
+                arr[:] = value
 
 
 def write_block(path: Path, start: int, samples: list[dict[str, NDArray | Encoded]], direct: bool = True) -> None:

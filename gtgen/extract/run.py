@@ -15,7 +15,7 @@ from typing import Any
 
 from gtgen import __version__, codes
 from gtgen.bag.reader import BagSet, hash_bag
-from gtgen.config import CAMERAS, RANGES, GtgenConfig, save_config
+from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract import calib
 from gtgen.extract.roles import resolve_roles
@@ -121,11 +121,10 @@ def _result(out: Path, scan: Scan, plan: Plan, warnings: list[str], reread: int,
 
 
 def _finish(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, result: ExtractResult) -> None:
-    """Write the store's attributes (last: they mark it complete) and its config."""
+    """Write the store's attributes (last: they mark it complete; the resolved config is one)."""
     root.attrs.update(store_attrs(
         DRIVE, gtgen_version=__version__,
         bags=[{"path": str(p.resolve()), "sha256": h} for p, h in zip(paths, result.bag_sha256)],
         config=cfg.model_dump(mode="json"), report=result.report(), reasons=codes.REASONS,
         image_size=[cfg.extract.image_width, cfg.extract.image_height], cameras=list(CAMERAS),
     ))
-    save_config(cfg, tmp / "gtgen-config.yaml")

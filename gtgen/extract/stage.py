@@ -26,7 +26,7 @@ from gtgen.bag.decode.pointcloud import decode_pointcloud
 from gtgen.bag.decode.tf import frame_id
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import DecodeError
-from gtgen.extract.voxels import nearest_points, padded
+from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
 from gtgen.storage.chunks import encode_chunk, make_parent
 from gtgen.storage.schema import MAP_LAYERS
@@ -132,7 +132,7 @@ class Stager:
             np.save(f, pts)
             self.result.voxels[i] = (-1, t, frame)
             return
-        pts = nearest_points(pts, self.cfg.shards.max_voxel_points)
+        pts = thinned_points(pts, self.cfg.shards.max_voxel_points, self.cfg.shards.far_voxel_m)
         self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
         self.result.voxels[i] = (len(pts), t, frame)
 

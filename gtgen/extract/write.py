@@ -27,7 +27,7 @@ from gtgen.extract.roles import is_large
 from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan
 from gtgen.extract.stage import STAGE, Staged
-from gtgen.extract.voxels import nearest_points, padded, to_odom_frame, voxel_points
+from gtgen.extract.voxels import padded, thinned_points, to_odom_frame, voxel_points
 from gtgen.runtime.pool import BackgroundWrites, Pool
 from gtgen.storage.chunks import (
     Runs,
@@ -218,7 +218,7 @@ class _Large:
                     self.n_points[v] = len(pts)
                     writes.submit(self.vox.__setitem__, v, padded(pts, P))
             for v, f, t, frame in self.raw:
-                pts = nearest_points(to_odom_frame(np.load(f), self.cfg, self.tf, frame, t), P)
+                pts = thinned_points(to_odom_frame(np.load(f), self.cfg, self.tf, frame, t), P, self.cfg.shards.far_voxel_m)
                 self.n_points[v] = len(pts)
                 writes.submit(self.vox.__setitem__, v, padded(pts, P))
         n_missing = sum(len(v) for v in self.missing.values())

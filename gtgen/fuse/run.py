@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from gtgen import __version__, codes
-from gtgen.config import RANGES, GtgenConfig, save_config
+from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import StoreError
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
@@ -124,7 +124,6 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) ->
             FUSED, gtgen_version=__version__, drive=str(drive_path.resolve()), drive_bags=drive.attrs.get("bags", []),
             config=cfg.model_dump(mode="json"), coverage=result.coverage, rejected=result.rejected,
         ))
-        save_config(cfg, tmp / "gtgen-config.yaml")
     return result
 
 

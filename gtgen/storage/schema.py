@@ -159,10 +159,21 @@ _DATASET += [
     ArraySpec("rejected/gnss_offset_m", "float32", "(R,)", "m", "DEM CRS", "NaN", "as meta/gnss_offset_m"),
     ArraySpec("rejected/vegetation_share", "float32", "(R,)", "0..1", "-", "NaN", "as meta/vegetation_share"),
 ]
-DATASET = StoreFormat("gtgen-dataset", 2, tuple(_DATASET), "gtgen dem-align")
+# coordinates, so that xarray.open_zarr(dataset, group=...) labels the grids in metres and
+# the samples by time: each group of per-sample grids holds its dimension coordinates
+TIME_ATTRS = {"units": "nanoseconds since 1970-01-01", "calendar": "proleptic_gregorian", "standard_name": "time"}
+COORDS: list[ArraySpec] = []
+for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels", "xracer", "dem") for r in RANGES] + [("inputs", "n_s")]:
+    COORDS += [
+        ArraySpec(f"{_g}/x_m", "float64", f"({_n},)", "m", _TGT, "-", "cell-centre x (forward) of grid axis 1, the dimension coordinate x_m"),
+        ArraySpec(f"{_g}/y_m", "float64", f"({_n},)", "m", _TGT, "-", "cell-centre y (left) of grid axis 2, the dimension coordinate y_m"),
+    ]
+for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
+    COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
+DATASET = StoreFormat("gtgen-dataset", 3, tuple(_DATASET + COORDS), "gtgen dem-align")
 
 # the arrays with one row per sample (sharded along the sample axis)
-SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in DATASET.arrays if not s.path.startswith(("rejected/", "inputs/voxel_")))
+SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_")))
 
 FORMATS = {f.kind: f for f in (DRIVE, FUSED, DATASET)}
 

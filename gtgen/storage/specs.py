@@ -59,9 +59,11 @@ def markdown_table(specs: list[ArraySpec]) -> str:
 def dimension_names(spec: ArraySpec) -> list[str]:
     """Return xarray-friendly dimension names of ``spec`` (from its shape symbols)."""
     leaf = spec.path.rsplit("/", 1)[-1]
+    if leaf in ("x_m", "y_m", "sample"):  # a dimension coordinate: named as its dimension
+        return [leaf]
     named = {"S": "sample", "R": "rejected", "P": "point", "H": "row", "W": "col", "S + 1": "sample_edge"}
     out: list[str] = []
-    grid_axes = iter(("x", "y"))
+    grid_axes = iter(("x_m", "y_m"))
     for i, sym in enumerate(spec.axes()):
         if sym in named:
             out.append(named[sym])

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gtgen.bag.messages import MessageFactory, open_mcap_writer
 from gtgen.config import GtgenConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
 from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
@@ -19,7 +20,6 @@ from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
 from gtgen.synth import sensors
 from gtgen.synth.drive import gnss_errors, gnss_outage
-from gtgen.synth.messages import MessageFactory
 from gtgen.synth.world import SynthWorld
 
 log = logging.getLogger(__name__)
@@ -55,18 +55,7 @@ class _Sinks:
         self.writers: list[tuple[MessageFactory, object, dict[str, object]]] = []
         self.tmp = tmp
         if formats in ("mcap", "both"):
-            from rosbags.rosbag2 import Writer
-            from rosbags.rosbag2.enums import (
-                CompressionFormat,
-                CompressionMode,
-                StoragePlugin,
-            )
-
-            w = Writer(tmp / "ros2", version=9, storage_plugin=StoragePlugin.MCAP)
-            w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-            w.open()
-            _fast_zstd(w)
-            self.writers.append((MessageFactory(ros1=False), w, {}))
+            self.writers.append((MessageFactory(ros1=False), open_mcap_writer(tmp / "ros2"), {}))
         if formats in ("bag", "both"):
             from rosbags.rosbag1 import Writer as Writer1
 
@@ -98,18 +87,6 @@ class _Sinks:
                 shutil.rmtree(self.tmp / "ros2")
                 paths.append(out_tmp / "drive.mcap")
         return paths
-
-
-def _fast_zstd(writer: object) -> None:
-    """Compress the MCAP chunks at zstd level 1 instead of rosbags' default 3: faster to
-    write (the synth's main process compresses every chunk) for slightly larger files;
-    any zstd reader reads them. Left as is if rosbags' writer changes shape."""
-    import zstandard
-    from rosbags.rosbag2.storage_mcap import McapWriter
-
-    storage = getattr(writer, "storage", None)
-    if isinstance(storage, McapWriter) and getattr(storage, "compression", "") == "zstd":
-        storage.compressor = zstandard.ZstdCompressor(level=1).compress
 
 
 def _check_out(out: Path, overwrite: bool) -> None:

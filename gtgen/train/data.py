@@ -7,6 +7,7 @@ works), elevations are clipped to +-``elevation_clip_m`` and scaled to +-1.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,7 +36,7 @@ def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
 
     Voxel-map minima sit on a 0.4 m voxel lattice; averaging neighbours removes most of
     that quantisation on smooth ground (on the demo val split: micro obs F MAE 0.137 ->
-    0.102 m, unobs 0.096 -> 0.049 m), so it is the prior the network corrects.
+    0.102 m, unobs 0.096 -> 0.049 m).
     """
     from scipy.ndimage import uniform_filter
 
@@ -46,8 +47,85 @@ def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
     return np.where(ok & (den > 0), num / np.maximum(den, 1e-12), np.nan).astype(np.float32)
 
 
+def filled(grid: NDArray) -> NDArray[np.float32]:
+    """Return ``grid`` with its NaN cells filled from the valid ones, coarse to fine: each
+    empty cell takes the Gaussian-weighted mean of the valid cells at the finest of the
+    scales 1, 2, 4, ... cells that reaches some (normalized convolution); valid cells keep
+    their value, a grid without any valid cell is 0. Beyond the voxel points it is the
+    smooth continuation of the ground around them, which the heads correct."""
+    from scipy.ndimage import gaussian_filter
+
+    ok = np.isfinite(grid)
+    if ok.all():
+        return grid.astype(np.float32)
+    if not ok.any():
+        return np.zeros(grid.shape, np.float32)
+    w = ok.astype(np.float64)
+    v = np.where(ok, grid, 0.0).astype(np.float64)
+    out = np.full(grid.shape, np.nan)
+    sigma = 1.0
+    while np.isnan(out).any() and sigma <= 2 * max(grid.shape):
+        den = gaussian_filter(w, sigma, mode="constant", truncate=3.0)
+        reach = np.isnan(out) & (den > 1e-3)
+        out[reach] = gaussian_filter(v, sigma, mode="constant", truncate=3.0)[reach] / den[reach]
+        sigma *= 2
+    out[np.isnan(out)] = float(grid[ok].mean())
+    out[ok] = grid[ok]
+    return out.astype(np.float32)
+
+
+def nearest_filled(grid: NDArray) -> NDArray[np.float32]:
+    """Return ``grid`` with every NaN cell set to the value of its nearest valid cell
+    (the eval's trivial full-coverage baseline); all NaN stays NaN."""
+    from scipy.ndimage import distance_transform_edt
+
+    ok = np.isfinite(grid)
+    if ok.all() or not ok.any():
+        return grid.astype(np.float32)
+    _, (i, j) = distance_transform_edt(~ok, return_indices=True)
+    return grid[i, j].astype(np.float32)
+
+
+def point_distance(grid: NDArray) -> NDArray[np.float32]:
+    """Return, per cell, the distance to the nearest valid cell of ``grid`` over the grid's
+    size (0 on valid cells, 1 everywhere when none is valid)."""
+    from scipy.ndimage import distance_transform_edt
+
+    ok = np.isfinite(grid)
+    if not ok.any():
+        return np.ones(grid.shape, np.float32)
+    return (distance_transform_edt(~ok) / grid.shape[0]).astype(np.float32)
+
+
 class ShardDataset(Dataset):
-    """Samples of a dataset store as tensors for M&M-lite (see ``__getitem__``)."""
+    """Samples of a dataset store as tensors, at the model sizes of a ``TrainConfig``.
+
+    Works with a ``torch.utils.data.DataLoader`` and any number of workers (each opens the
+    store itself); stack samples with ``gtgen.train.trainer._collate`` or the default
+    collate. ``ds[i]`` is a dict of tensors (n_m / n_s = ``tc.micro_size`` / ``short_size``,
+    labels resampled by nearest cell centre; elevations relative to the base height at t):
+
+    ===========================  ======================  ==========================================
+    key                          shape, dtype            meaning
+    ===========================  ======================  ==========================================
+    index                        (), int64               dataset sample index
+    images                       (4, 3, H, W), float32   front, left, right, back; ImageNet-normalised
+    K                            (4, 3, 3), float32      intrinsics at the model's image size [px]
+    T_target_cam                 (4, 4, 4), float32      target <- camera optical [m]
+    points, n_points             (P, 3) float32, ()      voxel points in the target frame [m], the
+                                                         first n_points valid (P = max_points)
+    raw                          (2, n_s, n_s), float32  min-z per short cell / elevation_clip_m
+                                                         (0 where none), and its validity (0/1)
+    prior, prior_micro           (2, n, n), float32      smoothed min z filled everywhere (scaled
+                                                         like raw), distance to the nearest cell
+                                                         with points / grid size
+    <r>/elevation                (n_r, n_r), float32     label / elevation_clip_m (NaN: no label)
+    <r>/risk                     (n_r, n_r), float32     label risk 0..1 (NaN: none)
+    <r>/region                   (n_r, n_r), int64       gtgen.codes: 0 none, 1 obs PC, 2 obs F, 3 unobs
+    <r>/xr_elevation, xr_risk    (n_r, n_r), float32     X-Racer's map at t [m] / 0..1 (NaN: none)
+    <r>/raw_elevation            (n_r, n_r), float32     min z [m] (NaN where no point)
+    ===========================  ======================  ==========================================
+    """
 
     def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int = 60000) -> None:
         g, info = open_dataset(path)
@@ -81,9 +159,15 @@ class ShardDataset(Dataset):
     def __len__(self) -> int:
         return len(self.indices)
 
-    def _group(self):
-        if self._g is None:  # opened lazily in each DataLoader worker
-            self._g, _ = open_dataset(self.path)
+    def _group(self) -> dict[str, Any]:
+        """Return the dataset's arrays by name, opened lazily in each DataLoader worker (one
+        group lookup per array, not per read)."""
+        if self._g is None:
+            g, _ = open_dataset(self.path)
+            names = ["inputs/images", "inputs/K", "inputs/T_target_base", "inputs/T_base_cam", "inputs/voxel_points_m", "inputs/raw_elevation_m"]
+            names += [f"{grp}/{r}/{a}" for r in ("micro", "short") for grp, a in
+                      (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"), ("xracer", "risk"))]
+            self._g = {n: g[n] for n in names}
         return self._g
 
     def _grid(self, arr: NDArray, rng: str) -> NDArray:
@@ -111,7 +195,8 @@ class ShardDataset(Dataset):
         padded[: len(pts)] = pts
         out["points"] = torch.from_numpy(padded)
         out["n_points"] = torch.tensor(len(pts))
-        raw = self._grid(g["inputs/raw_elevation_m"][k], "short")
+        raw_s = g["inputs/raw_elevation_m"][k]
+        raw = self._grid(raw_s, "short")
         out["raw"] = self._scaled(raw)
         for r in ("micro", "short"):
             el = self._grid(g[f"labels/{r}/elevation_m"][k], r)
@@ -121,13 +206,15 @@ class ShardDataset(Dataset):
             out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[f"xracer/{r}/elevation_m"][k], r).astype(np.float32))
             out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[f"xracer/{r}/risk"][k], r).astype(np.float32))
         # the raw min-z grid is short range; its micro view is the centre crop, upsampled
-        raw_s = g["inputs/raw_elevation_m"][k]
         n_s = raw_s.shape[0]
         centre = raw_s[n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]
         raw_m = centre[np.ix_(nearest_index(centre.shape[0], tc.micro_size), nearest_index(centre.shape[1], tc.micro_size))]
         out["micro/raw_elevation"] = torch.from_numpy(raw_m.astype(np.float32))
-        # the priors the heads correct, each range at its own resolution, scaled like "raw"
-        out["prior"] = self._scaled(smoothed_min_z(raw, self._prior_win["short"]))
-        out["prior_micro"] = self._scaled(smoothed_min_z(raw_m, self._prior_win["micro"]))
+        # the priors the heads correct, each range at its own resolution, scaled like "raw":
+        # (smoothed min z filled everywhere, distance to the nearest cell with points)
+        for key, grid, r in (("prior", raw, "short"), ("prior_micro", raw_m, "micro")):
+            sm = smoothed_min_z(grid, self._prior_win[r])
+            clip = tc.elevation_clip_m
+            out[key] = torch.from_numpy(np.stack([np.clip(filled(sm), -clip, clip) / clip, point_distance(grid)]).astype(np.float32))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))
         return out

@@ -1,4 +1,5 @@
-"""The paper's loss (Sec. III-D): risk MSE, weighted Smooth-L1 elevation, consistency."""
+"""The paper's loss (Sec. III-D): risk MSE (or a fatal-weighted MSE or cross-entropy),
+weighted Smooth-L1 elevation, consistency."""
 
 from __future__ import annotations
 
@@ -7,30 +8,46 @@ import torch.nn.functional as F
 
 from gtgen import codes
 from gtgen.config import TrainConfig
+from gtgen.train.model import centre_half
 
 
 def _masked_mean(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp(min=1)
 
 
-def range_losses(pred: dict, batch: dict, rng: str, alpha: float, beta: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Return (risk MSE, elevation loss) of one range; elevations (and ``beta``) in scaled units."""
-    risk_lbl = batch[f"{rng}/risk"]
-    rm = torch.isfinite(risk_lbl).float()
-    l_trav = _masked_mean((pred[f"{rng}/risk"] - torch.nan_to_num(risk_lbl)) ** 2, rm)
+def risk_loss(pred: dict, rng: str, label: torch.Tensor, tc: TrainConfig) -> torch.Tensor:
+    """Return the risk loss of range ``rng``: the paper's MSE (``mse``), the MSE with the
+    fatal cells (label >= ``fatal_risk``) weighted ``risk_fatal_weight`` times
+    (``weighted_mse``), or the binary cross-entropy of the predicted risk against the risk
+    label, fatal cells weighted alike (``weighted_bce``). Fatal cells are under 1 % of the
+    labelled cells: under plain MSE predicting "no risk" everywhere is nearly optimal, and
+    once the sigmoid saturates there its gradient vanishes; the cross-entropy's gradient
+    (prediction minus label) does not."""
+    ok = torch.isfinite(label)
+    y = torch.nan_to_num(label)
+    w = ok.float()
+    if tc.risk_loss != "mse":
+        w = w * (1.0 + (tc.risk_fatal_weight - 1.0) * (y >= tc.fatal_risk).float())
+    if tc.risk_loss == "weighted_bce":
+        return _masked_mean(F.binary_cross_entropy_with_logits(pred[f"{rng}/risk_logit"], y, reduction="none"), w)
+    return _masked_mean((pred[f"{rng}/risk"] - y) ** 2, w)
+
+
+def range_losses(pred: dict, batch: dict, rng: str, tc: TrainConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return (risk loss, elevation loss) of one range; elevations in scaled units."""
+    beta = tc.elevation_beta_m / tc.elevation_clip_m
     el = batch[f"{rng}/elevation"]
     reg = batch[f"{rng}/region"]
     sl1 = F.smooth_l1_loss(pred[f"{rng}/elevation"], torch.nan_to_num(el), reduction="none", beta=beta)
-    obs = ((reg == codes.OBS_PC) | (reg == codes.OBS_F)).float() * torch.isfinite(el).float()
-    unobs = (reg == codes.UNOBS).float() * torch.isfinite(el).float()
-    return l_trav, _masked_mean(sl1, obs) + alpha * _masked_mean(sl1, unobs)
+    have = torch.isfinite(el).float()
+    obs = ((reg == codes.OBS_PC) | (reg == codes.OBS_F)).float() * have
+    unobs = (reg == codes.UNOBS).float() * have
+    return risk_loss(pred, rng, batch[f"{rng}/risk"], tc), _masked_mean(sl1, obs) + tc.alpha * _masked_mean(sl1, unobs)
 
 
 def consistency(pred: dict, beta: float = 1.0) -> torch.Tensor:
     """Smooth-L1 between the micro elevation pooled to short cells and the short centre crop."""
-    s = pred["short/elevation"]
-    S = s.shape[-1]
-    crop = s[:, S // 4 : S - S // 4, S // 4 : S - S // 4]
+    crop = centre_half(pred["short/elevation"])
     m = F.adaptive_avg_pool2d(pred["micro/elevation"][:, None], crop.shape[-2:])[:, 0]
     return F.smooth_l1_loss(m, crop, beta=beta)
 
@@ -39,12 +56,11 @@ def total_loss(pred: dict, batch: dict, tc: TrainConfig) -> tuple[torch.Tensor, 
     """Return the weighted total and its parts (for logging)."""
     parts = {}
     total = torch.zeros((), device=pred["short/elevation"].device)
-    beta = tc.elevation_beta_m / tc.elevation_clip_m
     for rng in ("micro", "short"):
-        lt, le = range_losses(pred, batch, rng, tc.alpha, beta)
+        lt, le = range_losses(pred, batch, rng, tc)
         parts[f"{rng}/trav"], parts[f"{rng}/ele"] = float(lt.detach()), float(le.detach())
         total = total + tc.mu * lt + tc.lam * le
-    lc = consistency(pred, beta)
+    lc = consistency(pred, tc.elevation_beta_m / tc.elevation_clip_m)
     parts["cons"] = float(lc.detach())
     total = total + tc.gamma * lc
     parts["total"] = float(total.detach())

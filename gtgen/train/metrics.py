@@ -79,8 +79,11 @@ class Consistency:
     n: int = 0
 
     def add(self, micro_m: NDArray, short_m: NDArray) -> None:
-        S = short_m.shape[-1]
-        crop = short_m[..., S // 4 : S - S // 4, S // 4 : S - S // 4]
+        import torch
+
+        from gtgen.train.model import centre_half
+
+        crop = centre_half(torch.from_numpy(np.ascontiguousarray(short_m, np.float64))).numpy()
         f = micro_m.shape[-1] / crop.shape[-1]
         if f != int(f):
             from scipy.ndimage import zoom

@@ -131,8 +131,53 @@ class PointPillars(nn.Module):
         return self.cnn(bev.view(B, S, S, self.C).permute(0, 3, 1, 2))
 
 
+def centre_half(x: torch.Tensor) -> torch.Tensor:
+    """Return the centre half (per axis) of the maps ``x`` (..., S, S): the micro range's
+    part of the short grid. For S a multiple of 4 a slice, else resampled bilinearly at
+    S // 2 cells over exactly the centre half (S = 250 at the paper's sizes)."""
+    S = x.shape[-1]
+    if S % 4 == 0:
+        return x[..., S // 4 : S - S // 4, S // 4 : S - S // 4]
+    lead = x.shape[:-2]
+    flat = x.reshape(-1, 1, S, S)
+    theta = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]], dtype=flat.dtype, device=flat.device).expand(flat.shape[0], 2, 3)
+    grid = F.affine_grid(theta, [flat.shape[0], 1, S // 2, S // 2], align_corners=False)
+    return F.grid_sample(flat, grid, mode="bilinear", align_corners=False).reshape(*lead, S // 2, S // 2)
+
+
+class GlobalContext(nn.Module):
+    """Adds to every cell a feature of the whole map (mean-pooled, projected): the decoder
+    then sees the context of the entire short grid, tens of metres beyond the last point."""
+
+    def __init__(self, c: int) -> None:
+        super().__init__()
+        self.proj = nn.Sequential(nn.Linear(c, c), nn.ReLU(inplace=True), nn.Linear(c, c))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.proj(x.mean(dim=(2, 3)))[:, :, None, None]
+
+
+def _risk_head(c: int) -> nn.Sequential:
+    """A 3x3 layer then a linear 1x1 to the risk logit, starting at risk 1 %."""
+    head = nn.Sequential(nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c), nn.LeakyReLU(0.1, inplace=True), nn.Conv2d(c, 1, 1))
+    nn.init.constant_(head[-1].bias, -4.6)
+    return head
+
+
+def _dilated(c: int, d: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c, c, 3, 1, d, dilation=d, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True))
+
+
 class MMLite(nn.Module):
-    """The network: returns a dict of 'micro/elevation', 'micro/risk', 'short/...' maps."""
+    """The network: returns a dict of 'micro/elevation', 'micro/risk', 'short/...' maps.
+
+    Inputs fused on the short grid: Lift-Splat image features, PointPillars features, the
+    raw min-z channel (value, validity) and the prior the heads correct (the smoothed min z
+    filled everywhere, the distance to the nearest cell with points). A four-level U-Net
+    whose bottom (1/8 of the grid) has dilated convolutions and a global context feature,
+    so a cell's receptive field spans the whole short grid; the micro maps come from the
+    centre crop of its inputs and top features, upsampled and refined (Sec. III-D).
+    """
 
     def __init__(self, tc: TrainConfig, short_length_m: float) -> None:
         super().__init__()
@@ -141,21 +186,26 @@ class MMLite(nn.Module):
         res = short_length_m / S
         self.lift = LiftSplat(tc, S, res)
         self.pillars = PointPillars(tc, S, res)
-        cin = tc.image_channels + tc.pillar_channels + 2
+        cin = tc.image_channels + tc.pillar_channels + 4
         c = tc.decoder_channels
         self.enc1 = ResBlock(cin, c)
         self.enc2 = nn.Sequential(_block(c, 2 * c, 2), ResBlock(2 * c, 2 * c))
         self.enc3 = nn.Sequential(_block(2 * c, 4 * c, 2), ResBlock(4 * c, 4 * c))
+        self.enc4 = nn.Sequential(_block(4 * c, 4 * c, 2), _dilated(4 * c, 2), _dilated(4 * c, 4), GlobalContext(4 * c))
+        self.up3 = ResBlock(4 * c + 4 * c, 4 * c)
         self.up2 = ResBlock(4 * c + 2 * c, 2 * c)
         self.up1 = ResBlock(2 * c + c, c)
-        self.short_head = nn.Conv2d(c, 2, 1)
+        self.short_head = nn.Conv2d(c, 1, 1)
         self.micro = nn.Sequential(ResBlock(cin + c, c), ResBlock(c, c))
-        self.micro_refine = ResBlock(c, c)
-        self.micro_head = nn.Conv2d(c, 2, 1)
-        # zero-initialised heads: training starts from the smoothed min-z prior (and risk 0.5)
+        self.micro_refine = ResBlock(c + 2, c)
+        self.micro_head = nn.Conv2d(c, 1, 1)
+        # zero-initialised elevation heads: training starts from the filled min-z prior
         for head in (self.short_head, self.micro_head):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
+        # risk heads of their own: a 1x1 layer right on ReLU features lost every positive
+        # weight early (all cells "no risk") and then could not rise above its bias
+        self.short_risk, self.micro_risk = _risk_head(c), _risk_head(c)
 
     @staticmethod
     def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -166,24 +216,19 @@ class MMLite(nn.Module):
             self.lift(batch["images"], batch["K"], batch["T_target_cam"]),
             self.pillars(batch["points"], batch["n_points"]),
             batch["raw"],
+            batch["prior"],
         ], 1)
         e1 = self.enc1(x)
         e2 = self.enc2(e1)
         e3 = self.enc3(e2)
-        d2 = self.up2(torch.cat([self._up(e3, e2), e2], 1))
+        e4 = self.enc4(e3)
+        d3 = self.up3(torch.cat([self._up(e4, e3), e3], 1))
+        d2 = self.up2(torch.cat([self._up(d3, e2), e2], 1))
         d1 = self.up1(torch.cat([self._up(d2, e1), e1], 1))
-        s = self.short_head(d1)
-        S = x.shape[-1]
-        a, b = S // 4, S - S // 4  # the centre crop: +-50 m of +-100 m
-        m = self.micro(torch.cat([x[..., a:b, a:b], d1[..., a:b, a:b]], 1))
-        m = self.micro_refine(F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False))
-        m = self.micro_head(m)
-        # where the voxel map has points, the smoothed min-z grid is a strong prior
-        # (see data.smoothed_min_z): the heads correct it there
-        return {"short/elevation": self._over_prior(s[:, 0], batch["prior"]), "short/risk": torch.sigmoid(s[:, 1]),
-                "micro/elevation": self._over_prior(m[:, 0], batch["prior_micro"]), "micro/risk": torch.sigmoid(m[:, 1])}
-
-    def _over_prior(self, head: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
-        """Elevation: the prior plus the head's correction where the prior exists, the head
-        alone elsewhere (the heads start at zero, so training starts from the prior)."""
-        return prior[:, 0] * prior[:, 1] + head
+        s = torch.cat([self.short_head(d1), self.short_risk(d1)], 1)
+        m = self.micro(centre_half(torch.cat([x, d1], 1)))  # +-50 m of +-100 m
+        m = F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False)
+        m = self.micro_refine(torch.cat([m, batch["prior_micro"]], 1))
+        m = torch.cat([self.micro_head(m), self.micro_risk(m)], 1)
+        return {"short/elevation": batch["prior"][:, 0] + s[:, 0], "short/risk": torch.sigmoid(s[:, 1]), "short/risk_logit": s[:, 1],
+                "micro/elevation": batch["prior_micro"][:, 0] + m[:, 0], "micro/risk": torch.sigmoid(m[:, 1]), "micro/risk_logit": m[:, 1]}

@@ -13,29 +13,28 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from gtgen.config import GtgenConfig, TrainConfig, configs_dir, read_yaml, save_config
+from gtgen.config import GtgenConfig, TrainConfig, save_config
+from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
 from gtgen.errors import ConfigError, TrainError
 from gtgen.runtime.output import atomic_output, lock, write_atomic
 from gtgen.runtime.progress import track
-from gtgen.train.data import ShardDataset
+from gtgen.train.data import ShardDataset, nearest_filled
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 from gtgen.train.model import MMLite
 
 log = logging.getLogger(__name__)
 
-CKPT_VERSION = 2  # 2: heads correct a smoothed min-z prior (inputs "prior", "prior_micro")
-
-
-def preset_overrides(name: str) -> dict:
-    """Return the config layer of preset ``name`` (``configs/presets/<name>.yaml``)."""
-    path = configs_dir() / "presets" / f"{name}.yaml"
-    if not path.is_file():
-        names = sorted(p.stem for p in (configs_dir() / "presets").glob("*.yaml"))
-        raise ConfigError(f"preset {name!r} unknown; expected one of {names}")
-    layer = read_yaml(path)
-    layer.setdefault("train", {})["preset"] = name
-    return layer
+# the eval's elevation rows (JSON keys under "elevation"/<range>), in table order
+EVAL_ROWS = {
+    "model": "M&M-lite",
+    "model_on_xracer_cells": "M&M-lite on X-Racer's cells",
+    "model_on_raw_cells": "M&M-lite on the raw cells",
+    "xracer": "X-Racer at t",
+    "raw": "raw elevation (min z)",
+    "raw_nearest": "raw min z, nearest-filled",
+}
+CKPT_VERSION = 3  # 2: heads correct a smoothed min-z prior; 3: the prior filled everywhere is an input, four-level U-Net
 
 
 def seed_everything(seed: int) -> None:
@@ -53,8 +52,16 @@ def _to(batch: dict, device: str) -> dict:
 
 
 def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
-    """Return a fresh model; loads ``backbone_weights`` into the image backbone if given."""
-    model = MMLite(tc, data_cfg.grids.short.length_m)
+    """Return a fresh model; loads ``backbone_weights`` into the image backbone if given.
+    Raises ConfigError for grids the model cannot tile: it predicts the micro maps from the
+    centre half of the short grid, and its encoder halves the short grid three times."""
+    gm, gs = data_cfg.grids.micro, data_cfg.grids.short
+    if abs(2 * gm.length_m - gs.length_m) > 1e-6:
+        raise ConfigError(f"grids.micro spans {gm.length_m:g} m and grids.short {gs.length_m:g} m: M&M-lite predicts the micro maps "
+                          f"from the centre half of the short grid, so the micro grid must span {gs.length_m / 2:g} m")
+    if tc.short_size < 16 or tc.micro_size < 8:
+        raise ConfigError(f"train.short_size {tc.short_size} / micro_size {tc.micro_size}: the model needs at least 16 short and 8 micro cells")
+    model = MMLite(tc, gs.length_m)
     if tc.backbone_weights:
         p = Path(tc.backbone_weights)
         if not p.is_file():
@@ -185,21 +192,22 @@ def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainCo
 
 
 def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val") -> dict:
-    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (all if empty)."""
+    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (None: all)."""
     state, tc, data_cfg = _load_ckpt(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
     ds = ShardDataset(dataset, tc, split=split)
-    used = split
+    used = split or "all"
     if len(ds) == 0:
-        ds, used = ShardDataset(dataset, tc, split=None), "all"
+        raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.info.n_samples} samples are all in other splits); "
+                         "evaluate with --split all, or build more drives")
     if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
         raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
     model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
     model.load_state_dict(state["model"])
     model.eval()
     clip = tc.elevation_clip_m
-    acc = {r: {m: ElevationMAE() for m in ("model", "model_on_raw_cells", "xracer", "raw")} for r in ("micro", "short")}
+    acc = {r: {m: ElevationMAE() for m in EVAL_ROWS} for r in ("micro", "short")}
     risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in ("model", "xracer")} for r in ("micro", "short")}
     cons = Consistency()
     loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=0, collate_fn=_collate)
@@ -211,11 +219,14 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
                 reg = batch[f"{r}/region"].numpy()
                 pe = pred[f"{r}/elevation"].numpy() * clip
                 raw = batch[f"{r}/raw_elevation"].numpy()
+                xr = batch[f"{r}/xr_elevation"].numpy()
                 acc[r]["model"].add(pe, lab, reg)
-                # like for like with the raw baseline: only where the min-z grid has a value
+                # like for like with the stack and with the raw grid: only where each has a value
+                acc[r]["model_on_xracer_cells"].add(np.where(np.isfinite(xr), pe, np.nan), lab, reg)
                 acc[r]["model_on_raw_cells"].add(np.where(np.isfinite(raw), pe, np.nan), lab, reg)
-                acc[r]["xracer"].add(batch[f"{r}/xr_elevation"].numpy(), lab, reg)
+                acc[r]["xracer"].add(xr, lab, reg)
                 acc[r]["raw"].add(raw, lab, reg)
+                acc[r]["raw_nearest"].add(np.stack([nearest_filled(x) for x in raw]), lab, reg)
                 risk[r]["model"].add(pred[f"{r}/risk"].numpy(), batch[f"{r}/risk"].numpy())
                 risk[r]["xracer"].add(batch[f"{r}/xr_risk"].numpy(), batch[f"{r}/risk"].numpy())
             cons.add(pred["micro/elevation"].numpy() * clip, pred["short/elevation"].numpy() * clip)
@@ -226,6 +237,32 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
         "consistency_mae_m": cons.value(),
         "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
     }
+
+
+def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val") -> dict:
+    """Evaluate each checkpoint (one per training seed) and return the first's layout with
+    every metric replaced by its mean over the checkpoints, plus ``spread``: the same
+    layout with the standard deviations (None where any checkpoint has none), and ``runs``:
+    each checkpoint's own result."""
+    runs = [evaluate(dataset, c, None, split) for c in ckpts]
+    if len({r["preset"] for r in runs}) > 1:
+        raise TrainError(f"checkpoints of several presets: {sorted({r['preset'] for r in runs})}; evaluate one preset's seeds together")
+    out = _reduce(runs, np.mean)
+    out["spread"] = _reduce(runs, lambda v: np.std(v, ddof=1) if len(v) > 1 else 0.0)
+    out["runs"] = [{"ckpt": str(c), **r} for c, r in zip(ckpts, runs)]
+    return out
+
+
+def _reduce(results: list, fn):
+    """Return ``results[0]``'s nested layout with each numeric leaf reduced over the results."""
+    first = results[0]
+    if isinstance(first, dict):
+        return {k: _reduce([r[k] for r in results], fn) for k in first}
+    if (isinstance(first, (int, float)) and not isinstance(first, bool)) or first is None:
+        if any(r is None for r in results):
+            return None
+        return float(fn(np.array(results, np.float64)))
+    return first
 
 
 def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarray]:

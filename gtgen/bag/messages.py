@@ -1,6 +1,9 @@
-"""Build ROS 1 and ROS 2 messages from plain values, for one bag flavour at a time."""
+"""Build ROS 1 and ROS 2 messages from plain values, for one bag flavour at a time, and
+open the MCAP writer gtgen writes them with (``gtgen synth``, ``gtgen export mcap``)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -100,6 +103,23 @@ class MessageFactory:
             is_bigendian=False, point_step=12, row_step=12 * len(pts), data=data, is_dense=True,
         )
 
+    def foxglove_grid(self, t_ns: int, frame: str, resolution: float, layers: dict[str, NDArray]) -> object:
+        """Return a foxglove_msgs Grid (ROS 2) of square float32 layers in gtgen layout
+        (axis 0 = +x from -L/2, axis 1 = +y), centred on ``frame``'s origin: cell (i, j)
+        is column i, row j, as Foxglove lays a grid out from its pose along +x then +y."""
+        size = next(iter(layers.values())).shape[0]
+        half = 0.5 * size * resolution
+        F = self.T["foxglove_msgs/msg/PackedElementField"]
+        fields = [F(name=name, offset=4 * i, type=7) for i, name in enumerate(layers)]  # FLOAT32
+        cells = np.stack([np.asarray(a, np.float32).T for a in layers.values()], -1)  # (row j, column i, layer)
+        stamp = self.T["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000))
+        return self.T["foxglove_msgs/msg/Grid"](
+            timestamp=stamp, frame_id=frame, pose=self.pose(np.array([-half, -half, 0.0]), np.array([0.0, 0.0, 0.0, 1.0])),
+            column_count=size, cell_size=self.T["foxglove_msgs/msg/Vector2"](x=float(resolution), y=float(resolution)),
+            row_stride=4 * len(layers) * size, cell_stride=4 * len(layers), fields=fields,
+            data=np.frombuffer(np.ascontiguousarray(cells, "<f4").tobytes(), np.uint8),
+        )
+
     def gridmap(
         self,
         t_ns: int,
@@ -139,3 +159,28 @@ class MessageFactory:
             header=self.header(t_ns, frame), info=info, layers=list(layers), basic_layers=[next(iter(layers))],
             data=arrays, outer_start_index=start[0], inner_start_index=start[1],
         )
+
+
+def open_mcap_writer(folder: Path) -> object:
+    """Return an open rosbags ROS 2 writer of MCAP storage (zstd chunks) into ``folder``
+    (which must not exist); the caller adds connections, writes and closes it."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+
+    w = Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP)
+    w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    w.open()
+    _fast_zstd(w)
+    return w
+
+
+def _fast_zstd(writer: object) -> None:
+    """Compress the MCAP chunks at zstd level 1 instead of rosbags' default 3: faster to
+    write (the synth's main process compresses every chunk) for slightly larger files;
+    any zstd reader reads them. Left as is if rosbags' writer changes shape."""
+    import zstandard
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    storage = getattr(writer, "storage", None)
+    if isinstance(storage, McapWriter) and getattr(storage, "compression", "") == "zstd":
+        storage.compressor = zstandard.ZstdCompressor(level=1).compress

@@ -1,0 +1,65 @@
+"""``gtgen export``: the dataset for the tools people already look with (QGIS, Foxglove)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from gtgen.cli.app import WORKSPACE, app, table
+
+export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown",
+                     help="Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.")
+app.add_typer(export, name="export")
+
+
+def _samples(text: Optional[str]) -> Optional[list[int]]:
+    if text is None:
+        return None
+    try:
+        return [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"'{text}' is not a comma-separated list of sample indices, e.g. 3,7") from None
+
+
+@export.command()
+def geotiff(
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
+    out: Path = typer.Option(Path("export/geotiff"), "-o", "--out", help="folder to write"),
+    samples: Optional[str] = typer.Option(None, "--samples", help="instead of mosaics, one raster set per listed sample, e.g. 3,7"),
+) -> None:
+    """Write north-up Cloud-Optimized GeoTIFFs in the dataset's CRS: per drive and range the
+    mosaics of the labels (elevation in the DEM's datum, risk, region, count, last
+    observation time) and of the aligned DEM.
+
+    **Examples**
+
+        gtgen export geotiff -o qgis/
+        gtgen export geotiff --samples 3,7 -o qgis/samples
+    """
+    from gtgen.export import export_geotiff
+
+    res = export_geotiff(dataset, out, _samples(samples))
+    table("gtgen export geotiff", [("out", res.out), ("samples", res.samples), ("files", len(res.files)),
+                                   ("e.g.", res.files[0] if res.files else "-")])
+
+
+@export.command()
+def mcap(
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
+    out: Path = typer.Option(Path("export/dataset.mcap"), "-o", "--out", help=".mcap file to write"),
+) -> None:
+    """Write one ROS 2 MCAP that Foxglove plays: per sample the label and X-Racer grids
+    (GridMap and foxglove Grid), TF, the four images and the voxel points, at the sample
+    times.
+
+    **Examples**
+
+        gtgen export mcap -o labels.mcap
+    """
+    from gtgen.export import export_mcap
+
+    res = export_mcap(dataset, out)
+    rows = [("out", res.out), ("samples", res.samples)] + [(f"  {k}", v) for k, v in res.counts.items()]
+    table("gtgen export mcap", rows)

@@ -1,0 +1,174 @@
+"""``gtgen export mcap``: the dataset as one ROS 2 MCAP recording that Foxglove plays.
+
+Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
+
+- ``/tf``: ``map -> target`` (the sample's placement after ICP, ``meta/T_crs_target``,
+  with ``map`` the drive's working CRS shifted to its first sample so that coordinates
+  stay small), ``target -> base_link`` (``inputs/T_target_base``) and
+  ``base_link -> camera_<name>`` (``inputs/T_base_cam``);
+- ``/gtgen/labels/<range>``: ``grid_map_msgs/GridMap`` in ``target`` with the layers
+  ``elevation``, ``risk``, ``confidence``, ``region``, ``count``, ``last_dt_s`` and
+  ``dem_elevation`` (the aligned DEM), heights relative to the base at t as in the
+  dataset;
+- ``/gtgen/xracer/<range>``: the X-Racer map at t (``elevation``, ``risk``,
+  ``confidence``), same frame;
+- ``/gtgen/labels/<range>/grid``: the labels as ``foxglove_msgs/Grid`` (``elevation``,
+  ``risk``, ``region``), which Foxglove's 3D panel colours without a plugin;
+- ``/gtgen/camera_<name>/image/compressed`` (JPEG) and ``.../camera_info``;
+- ``/gtgen/voxel_points``: the sample's voxel-map points as ``sensor_msgs/PointCloud2``
+  in ``target``.
+
+The file is written with rosbags' MCAP writer (zstd chunks), schemas included, so it
+plays without the message packages installed.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.config import RANGES
+from gtgen.errors import GtgenError
+from gtgen.geometry import matrix_to_quat
+from gtgen.runtime.output import stage_output
+from gtgen.runtime.progress import track
+from gtgen.storage.stores import open_dataset
+
+LABEL_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence", "region": "region",
+                "count": "count", "last_dt_s": "last_dt_s"}
+XRACER_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence"}
+GRID_LAYERS = ("elevation", "risk", "region")
+BLOCK = 16  # samples read at once: bounded memory whatever the dataset's length
+
+
+@dataclass
+class McapExport:
+    """What an MCAP export wrote: the file, samples, and messages per topic."""
+
+    out: Path
+    samples: int = 0
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def _jpeg(img: NDArray, quality: int = 90) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+class _Topics:
+    """Connections created on first use; counts what was written."""
+
+    def __init__(self, writer: object, store: object) -> None:
+        self.w, self.store = writer, store
+        self.conns: dict[str, object] = {}
+        self.counts: dict[str, int] = {}
+
+    def write(self, topic: str, msgtype: str, t_ns: int, blob: bytes) -> None:
+        if topic not in self.conns:
+            self.conns[topic] = self.w.add_connection(topic, msgtype, typestore=self.store)  # type: ignore[attr-defined]
+        self.w.write(self.conns[topic], int(t_ns), blob)  # type: ignore[attr-defined]
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+
+def export_mcap(dataset: Path, out: Path) -> McapExport:
+    """Write ``dataset`` as the ROS 2 MCAP file ``out`` (atomically)."""
+    from gtgen.bag.messages import MessageFactory, open_mcap_writer
+
+    g, info = open_dataset(dataset)
+    if info.n_samples == 0:
+        raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
+    if out.suffix != ".mcap":
+        raise GtgenError(f"output '{out}' must be a file ending in .mcap")
+    from gtgen.config import GtgenConfig
+
+    cfg = GtgenConfig.model_validate(info.attrs.config)
+    cams = list(info.attrs.cameras)
+    t_ns = g["meta/t_ns"][:]
+    drive = g["meta/drive"][:]
+    T = g["meta/T_crs_target"][:]
+    order = np.lexsort((t_ns, drive))
+    origin = {int(d): T[order[np.nonzero(drive[order] == d)[0][0]], :3, 3].copy() for d in np.unique(drive)}
+    offsets = g["inputs/voxel_offsets"][:]
+    fac = MessageFactory(ros1=False)
+    res = McapExport(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with stage_output(out, reads=[dataset]) as tmp, tempfile.TemporaryDirectory(dir=out.parent, prefix=".gtgen-mcap-") as scratch:
+        w = open_mcap_writer(Path(scratch) / "bag")
+        topics = _Topics(w, fac.store)
+        try:
+            for a in track(range(0, len(order), BLOCK), "export mcap", total=(len(order) + BLOCK - 1) // BLOCK):
+                ks = np.sort(order[a:a + BLOCK])  # read one block in index order, write in time order
+                block = _read_block(g, ks, cams)
+                for k in order[a:a + BLOCK]:
+                    _write_sample(fac, topics, block, int(np.searchsorted(ks, k)), int(k), int(t_ns[k]), T[k] - _shift(origin[int(drive[k])]),
+                                  cams, cfg, offsets, g)
+        finally:
+            w.close()  # type: ignore[attr-defined]
+        shutil.move(str(next((Path(scratch) / "bag").glob("*.mcap"))), tmp)
+    res.samples = len(order)
+    res.counts = dict(sorted(topics.counts.items()))
+    return res
+
+
+def _shift(origin: NDArray) -> NDArray:
+    """Return the 4x4 whose subtraction moves a CRS placement into the drive's ``map``."""
+    s = np.zeros((4, 4))
+    s[:3, 3] = origin
+    return s
+
+
+def _read_block(g: object, ks: NDArray, cams: list[str]) -> dict[str, NDArray]:
+    """Read the arrays a block of samples needs (``ks`` ascending)."""
+    sel = ks if len(ks) == 1 or np.any(np.diff(ks) != 1) else slice(int(ks[0]), int(ks[-1]) + 1)
+    paths = [f"labels/{r}/{v}" for r in RANGES for v in LABEL_LAYERS.values()]
+    paths += [f"xracer/{r}/{v}" for r in RANGES for v in XRACER_LAYERS.values()]
+    paths += [f"dem/{r}/elevation_m" for r in RANGES]
+    paths += ["inputs/images", "inputs/K", "inputs/T_base_cam", "inputs/T_target_base"]
+    out = {}
+    for p in paths:
+        arr = g[p]  # type: ignore[index]
+        out[p] = arr[sel] if isinstance(sel, slice) else arr.get_orthogonal_selection((sel,))
+    return out
+
+
+def _tf(fac: object, t: int, parent: str, child: str, T: NDArray) -> object:
+    return fac.transform_stamped(t, parent, child, T[:3, 3], matrix_to_quat(T[:3, :3]))  # type: ignore[attr-defined]
+
+
+def _write_sample(fac, topics: _Topics, block: dict[str, NDArray], i: int, k: int, t: int, T_map_target: NDArray,
+                  cams: list[str], cfg, offsets: NDArray, g) -> None:
+    """Write sample ``k`` (row ``i`` of ``block``) at stamp ``t``."""
+    tfs = [_tf(fac, t, "map", "target", T_map_target), _tf(fac, t, "target", "base_link", block["inputs/T_target_base"][i])]
+    tfs += [_tf(fac, t, "base_link", f"camera_{c}", block["inputs/T_base_cam"][i, ci]) for ci, c in enumerate(cams)]
+    topics.write("/tf", "tf2_msgs/msg/TFMessage", t, fac.serialize(fac.tf_message(tfs), "tf2_msgs/msg/TFMessage"))
+    for r in RANGES:
+        gr = cfg.grids.get(r)
+        layers = {name: block[f"labels/{r}/{v}"][i].astype(np.float32) for name, v in LABEL_LAYERS.items()}
+        layers["dem_elevation"] = block[f"dem/{r}/elevation_m"][i].astype(np.float32)
+        msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), layers, (0, 0), k)
+        topics.write(f"/gtgen/labels/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
+        xr = {name: block[f"xracer/{r}/{v}"][i].astype(np.float32) for name, v in XRACER_LAYERS.items()}
+        msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), xr, (0, 0), k)
+        topics.write(f"/gtgen/xracer/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
+        grid = fac.foxglove_grid(t, "target", gr.resolution_m, {n: layers[n] for n in GRID_LAYERS})
+        topics.write(f"/gtgen/labels/{r}/grid", "foxglove_msgs/msg/Grid", t, fac.serialize(grid, "foxglove_msgs/msg/Grid"))
+    images = block["inputs/images"][i]
+    for ci, c in enumerate(cams):
+        img = images[ci]
+        msg = fac.compressed_image(t, f"camera_{c}", _jpeg(img), k)
+        topics.write(f"/gtgen/camera_{c}/image/compressed", "sensor_msgs/msg/CompressedImage", t,
+                     fac.serialize(msg, "sensor_msgs/msg/CompressedImage"))
+        msg = fac.camera_info(t, f"camera_{c}", img.shape[1], img.shape[0], block["inputs/K"][i, ci], k)
+        topics.write(f"/gtgen/camera_{c}/camera_info", "sensor_msgs/msg/CameraInfo", t, fac.serialize(msg, "sensor_msgs/msg/CameraInfo"))
+    pts = g["inputs/voxel_points_m"][int(offsets[k]):int(offsets[k + 1])]
+    msg = fac.pointcloud_xyz(t, "target", pts, k)
+    topics.write("/gtgen/voxel_points", "sensor_msgs/msg/PointCloud2", t, fac.serialize(msg, "sensor_msgs/msg/PointCloud2"))
