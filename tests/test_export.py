@@ -227,3 +227,21 @@ def test_open_dataset_gives_schema_splits_and_xarray_in_metres(dataset, cfg):
     assert len(tr) == len(ds.splits["train"])
     item = tr[0]
     assert item["images"].shape[:2] == (4, 3) and item["micro/elevation"].ndim == 2 and item["micro/region"].dtype.is_floating_point is False
+
+
+def test_geotiff_tiles_give_the_one_tile_mosaic(dataset, tifs, tmp_path, monkeypatch):
+    """Memory is bounded by mosaic tiles: written tile by tile (many small tiles here), the
+    mosaic equals the one written as a single tile."""
+    import rasterio
+
+    import gtgen.export.geotiff as gt
+
+    monkeypatch.setattr(gt, "TILE", 100)
+    monkeypatch.setattr(gt, "BLOCK", 3)
+    gt.export_geotiff(dataset, tmp_path / "tiled")
+    for r in ("micro", "short"):
+        for layer in gt.LAYERS:
+            with rasterio.open(tifs / r / f"{layer}.tif") as a, rasterio.open(tmp_path / "tiled" / "drive" / r / f"{layer}.tif") as b:
+                assert a.transform == b.transform and a.shape == b.shape
+                assert a.shape[0] > 100 or a.shape[1] > 100, "several tiles"
+                np.testing.assert_array_equal(a.read(1), b.read(1))

@@ -32,7 +32,11 @@ from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import GtgenError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.stores import open_dataset, read_rows
+
+BLOCK = 16  # samples read at once (one shard): one zarr call per block, bounded memory
+TILE = 2048  # mosaic tile edge [px]: the arrays of one tile are in memory at a time
+GDAL_CACHE_MB = 128
 
 # layer: (dtype, nodata)
 LAYERS: dict[str, tuple[str, Any]] = {
@@ -77,13 +81,32 @@ class _Mosaic:
         return from_origin(self.west, self.north, self.res, self.res)
 
 
-def _mosaic_grid(T: NDArray, length_m: float, res: float) -> _Mosaic:
-    """Return the pixel grid covering every sample's footprint (centre +- the half diagonal)."""
+def _mosaic_grid(T: NDArray, length_m: float, res: float) -> tuple[float, float, int, int]:
+    """Return (west, north, width, height) of the pixel grid covering every sample's
+    footprint (centre +- the half diagonal)."""
     r = 0.5 * length_m * np.sqrt(2) + res
     e, n = T[:, 0, 3], T[:, 1, 3]
     west, east = np.floor((e.min() - r) / res) * res, np.ceil((e.max() + r) / res) * res
     south, north = np.floor((n.min() - r) / res) * res, np.ceil((n.max() + r) / res) * res
-    return _Mosaic(float(west), float(north), res, int(round((east - west) / res)), int(round((north - south) / res)))
+    return float(west), float(north), int(round((east - west) / res)), int(round((north - south) / res))
+
+
+def _tiles(T: NDArray, ks: NDArray, west: float, north: float, width: int, height: int, res: float,
+           length_m: float) -> list[tuple[int, int, int, int, NDArray]]:
+    """Return the mosaic's tiles of ``TILE`` px that some sample's footprint touches: (row,
+    col, height, width, those samples). Memory then scales with a tile, not with the
+    drive's extent."""
+    r = 0.5 * length_m * np.sqrt(2) + res
+    e, n = T[ks, 0, 3], T[ks, 1, 3]
+    out = []
+    for r0 in range(0, height, TILE):
+        for c0 in range(0, width, TILE):
+            h, w = min(TILE, height - r0), min(TILE, width - c0)
+            w0, n0 = west + c0 * res, north - r0 * res
+            near = (e + r > w0) & (e - r < w0 + w * res) & (n - r < n0) & (n + r > n0 - h * res)
+            if near.any():
+                out.append((r0, c0, h, w, ks[near]))
+    return out
 
 
 def _footprint(m: _Mosaic, T: NDArray, size: int, res: float) -> tuple[tuple[slice, slice], NDArray, NDArray]:
@@ -106,56 +129,91 @@ def _footprint(m: _Mosaic, T: NDArray, size: int, res: float) -> tuple[tuple[sli
     return (slice(r0, r1), slice(c0, c1)), np.where(inside, i * size + j, -1), (x * x + y * y).astype(np.float32)
 
 
+def _blocks(ks: NDArray) -> list[NDArray]:
+    """Return ``ks`` (ascending) in blocks of ``BLOCK``."""
+    return [ks[a:a + BLOCK] for a in range(0, len(ks), BLOCK)]
+
+
 def _composite(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, size: int, res: float) -> None:
     """Pick for each pixel the nearest sample that labels it (and that has DEM there)."""
-    for k in track(ks, f"export geotiff: {r} placement"):
-        win, cell, d2 = _footprint(m, T[k], size, res)
-        valid = {"label": g[f"labels/{r}/region"][k].ravel() > 0, "dem": np.isfinite(g[f"dem/{r}/elevation_m"][k].ravel())}
-        for kind, ok in valid.items():
-            take = (cell >= 0) & ok[np.maximum(cell, 0)] & (d2 < m.best[kind][win])
-            m.best[kind][win] = np.where(take, d2, m.best[kind][win])
-            m.sample[kind][win] = np.where(take, k, m.sample[kind][win])
-            m.cell[kind][win] = np.where(take, cell, m.cell[kind][win])
+    for block in _blocks(ks):
+        region = read_rows(g[f"labels/{r}/region"], block)
+        dem = read_rows(g[f"dem/{r}/elevation_m"], block)
+        for n, k in enumerate(block):
+            win, cell, d2 = _footprint(m, T[k], size, res)
+            valid = {"label": region[n].ravel() > 0, "dem": np.isfinite(dem[n].ravel())}
+            for kind, ok in valid.items():
+                take = (cell >= 0) & ok[np.maximum(cell, 0)] & (d2 < m.best[kind][win])
+                m.best[kind][win] = np.where(take, d2, m.best[kind][win])
+                m.sample[kind][win] = np.where(take, k, m.sample[kind][win])
+                m.cell[kind][win] = np.where(take, cell, m.cell[kind][win])
 
 
 def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t0_ns: int) -> dict[str, NDArray]:
-    """Gather each layer's mosaic from the samples the composite picked."""
+    """Gather each layer's mosaic from the samples the composite picked: the pixels are
+    grouped by sample once (one sort), then each sample's arrays are read once."""
     out = {name: np.full((m.height, m.width), nodata, dtype) for name, (dtype, nodata) in LAYERS.items()}
+    flat = {name: a.reshape(-1) for name, a in out.items()}
     t_ns = g["meta/t_ns"][:]
-    for k in track(ks, f"export geotiff: {r} layers"):
-        for kind in ("label", "dem"):
-            sel = m.sample[kind] == k
-            if not sel.any():
-                continue
-            cells = m.cell[kind][sel]
+    groups = {}
+    for kind in ("label", "dem"):
+        s = m.sample[kind].reshape(-1)
+        pix = np.nonzero(s >= 0)[0]
+        pix = pix[np.argsort(s[pix], kind="stable")]
+        sorted_s = s[pix]
+        groups[kind] = (pix, np.searchsorted(sorted_s, ks, "left"), np.searchsorted(sorted_s, ks, "right"), m.cell[kind].reshape(-1))
+    n = 0
+    for block in _blocks(ks):
+        arrays = {v: read_rows(g[f"{v}"], block) for v in
+                  (f"dem/{r}/elevation_m", *(f"labels/{r}/{x}" for x in ("elevation_m", "risk", "region", "count", "last_dt_s")))}
+        for b, k in enumerate(block):
             z = T[k][2, 3]  # the placed base height: label heights are relative to it
-            if kind == "dem":
-                out["dem_elevation_m"][sel] = g[f"dem/{r}/elevation_m"][k].ravel()[cells] + z
+            pix, lo, hi, cell = groups["dem"]
+            p = pix[lo[n]:hi[n]]
+            if len(p):
+                flat["dem_elevation_m"][p] = arrays[f"dem/{r}/elevation_m"][b].ravel()[cell[p]] + z
+            pix, lo, hi, cell = groups["label"]
+            p = pix[lo[n]:hi[n]]
+            n += 1
+            if not len(p):
                 continue
-            out["elevation_m"][sel] = g[f"labels/{r}/elevation_m"][k].ravel()[cells] + z
-            out["risk"][sel] = g[f"labels/{r}/risk"][k].ravel()[cells]
-            out["region"][sel] = g[f"labels/{r}/region"][k].ravel()[cells]
-            out["count"][sel] = g[f"labels/{r}/count"][k].ravel()[cells]
-            out["last_obs_s"][sel] = g[f"labels/{r}/last_dt_s"][k].ravel()[cells] + (int(t_ns[k]) - t0_ns) * 1e-9
+            c = cell[p]
+            lab = {x: arrays[f"labels/{r}/{x}"][b].ravel()[c] for x in ("elevation_m", "risk", "region", "count", "last_dt_s")}
+            flat["elevation_m"][p] = lab["elevation_m"] + z
+            flat["risk"][p] = lab["risk"]
+            flat["region"][p] = lab["region"]
+            flat["count"][p] = lab["count"]
+            flat["last_obs_s"][p] = lab["last_dt_s"] + (int(t_ns[k]) - t0_ns) * 1e-9
     return out
 
 
-def write_cog(path: Path, band: NDArray, crs: str, transform: Any, nodata: Any, description: str) -> None:
-    """Write one band as a Cloud-Optimized GeoTIFF (deflate, 512 px tiles, overviews down
-    to 512 px; averaged, or nearest for codes and counts)."""
-    from rasterio.io import MemoryFile
+def _open_bands(folder: Path, r: str, width: int, height: int, crs: str, transform: Any) -> dict[str, Any]:
+    """Open one tiled GeoTIFF per layer for writing window by window (empty blocks are not
+    written); ``_to_cog`` turns each into a COG."""
+    import rasterio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for layer, (dtype, nodata) in LAYERS.items():
+        ds = rasterio.open(folder / f".{layer}.tif", "w", driver="GTiff", width=width, height=height, count=1, dtype=dtype,
+                           crs=crs, transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
+                           compress="DEFLATE", sparse_ok=True, BIGTIFF="IF_SAFER")
+        ds.set_band_description(1, f"{r} {layer}")
+        out[layer] = ds
+    return out
+
+
+def _to_cog(src_path: Path, path: Path) -> None:
+    """Copy a GeoTIFF into a Cloud-Optimized GeoTIFF (deflate, 256 px tiles, overviews down
+    to 256 px; averaged, or nearest for codes and counts), and remove the source."""
+    import rasterio
     from rasterio.shutil import copy as rio_copy
 
-    profile = {"driver": "GTiff", "width": band.shape[1], "height": band.shape[0], "count": 1, "dtype": band.dtype.name,
-               "crs": crs, "transform": transform, "nodata": nodata}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with MemoryFile() as mem:
-        with mem.open(**profile) as ds:
-            ds.write(band, 1)
-            ds.set_band_description(1, description)
-        with mem.open() as src:
-            rio_copy(src, str(path), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO",
-                     overview_resampling="nearest" if band.dtype.kind in "ui" else "average")
+    with rasterio.open(src_path) as src:
+        kind = np.dtype(src.dtypes[0]).kind
+        rio_copy(src, str(path), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
+                 overview_resampling="nearest" if kind in "ui" else "average")
+    src_path.unlink()
 
 
 def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -> ExportResult:
@@ -172,8 +230,12 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -
         bad = [k for k in samples if not 0 <= k < info.n_samples]
         if bad:
             raise GtgenError(f"--samples {bad[0]} is not a sample of '{dataset}' (0..{info.n_samples - 1})")
+    import rasterio
+
     res = ExportResult(out)
-    with stage_output(out, reads=[dataset]) as tmp:
+    # GDAL caches up to 5 % of the machine's memory by default; a fixed cache keeps the
+    # export's memory bounded
+    with stage_output(out, reads=[dataset]) as tmp, rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
         groups = [(f"samples/{k}", np.array([k])) for k in samples] if samples is not None else \
                  [(d.name or f"drive{i}", np.nonzero(drive == i)[0]) for i, d in enumerate(info.attrs.drives)]
         for name, ks in groups:
@@ -183,11 +245,27 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -
             t0 = int(t_ns[np.nonzero(drive == drive[ks[0]])[0]].min())
             for r in RANGES:
                 gr = cfg.grids.get(r)
-                m = _mosaic_grid(T[ks], gr.length_m, gr.resolution_m)
-                _composite(m, g, r, ks, T, gr.size, gr.resolution_m)
-                for layer, band in _layers(m, g, r, ks, T, t0).items():
-                    path = tmp / name / r / f"{layer}.tif"
-                    write_cog(path, band, crs, m.transform(), LAYERS[layer][1], f"{r} {layer}")
-                    res.files.append(out / path.relative_to(tmp))
+                west, north, width, height = _mosaic_grid(T[ks], gr.length_m, gr.resolution_m)
+                from rasterio.transform import from_origin
+                from rasterio.windows import Window
+
+                folder = tmp / name / r
+                bands = _open_bands(folder, r, width, height, crs, from_origin(west, north, gr.resolution_m, gr.resolution_m))
+                try:
+                    for r0, c0, h, w, near in track(_tiles(T, ks, west, north, width, height, gr.resolution_m, gr.length_m),
+                                                    f"export geotiff: {name} {r}"):
+                        m = _Mosaic(west + c0 * gr.resolution_m, north - r0 * gr.resolution_m, gr.resolution_m, w, h)
+                        _composite(m, g, r, near, T, gr.size, gr.resolution_m)
+                        used = np.unique(np.concatenate([m.sample["label"][m.sample["label"] >= 0], m.sample["dem"][m.sample["dem"] >= 0]]))
+                        if not len(used):
+                            continue
+                        for layer, band in _layers(m, g, r, used, T, t0).items():
+                            bands[layer].write(band, 1, window=Window(c0, r0, w, h))
+                finally:
+                    for ds in bands.values():
+                        ds.close()
+                for layer in LAYERS:
+                    _to_cog(folder / f".{layer}.tif", folder / f"{layer}.tif")
+                    res.files.append(out / name / r / f"{layer}.tif")
             res.samples += len(ks)
     return res

@@ -38,7 +38,7 @@ from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.stores import open_dataset, read_rows
 
 LABEL_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence", "region": "region",
                 "count": "count", "last_dt_s": "last_dt_s"}
@@ -128,16 +128,11 @@ def _shift(origin: NDArray) -> NDArray:
 
 def _read_block(g: object, ks: NDArray, cams: list[str]) -> dict[str, NDArray]:
     """Read the arrays a block of samples needs (``ks`` ascending)."""
-    sel = ks if len(ks) == 1 or np.any(np.diff(ks) != 1) else slice(int(ks[0]), int(ks[-1]) + 1)
     paths = [f"labels/{r}/{v}" for r in RANGES for v in LABEL_LAYERS.values()]
     paths += [f"xracer/{r}/{v}" for r in RANGES for v in XRACER_LAYERS.values()]
     paths += [f"dem/{r}/elevation_m" for r in RANGES]
     paths += ["inputs/images", "inputs/K", "inputs/T_base_cam", "inputs/T_target_base"]
-    out = {}
-    for p in paths:
-        arr = g[p]  # type: ignore[index]
-        out[p] = arr[sel] if isinstance(sel, slice) else arr.get_orthogonal_selection((sel,))
-    return out
+    return {p: read_rows(g[p], ks) for p in paths}  # type: ignore[index]
 
 
 def _tf(fac: object, t: int, parent: str, child: str, T: NDArray) -> object:

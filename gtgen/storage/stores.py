@@ -89,3 +89,15 @@ def open_dataset(path: Path) -> tuple[Any, DatasetInfo]:
     img = g["inputs/images"].shape
     return g, DatasetInfo(path, S, int(g["labels/micro/region"].shape[1]), int(g["labels/short/region"].shape[1]),
                           (int(img[2]), int(img[3])), attrs)
+
+
+def read_rows(arr: Any, rows: Any) -> Any:
+    """Return ``arr[rows]`` for sorted sample indices ``rows``, in one zarr call (a slice
+    when they are consecutive): one call per block instead of one per sample, each of
+    which costs about 2 ms of zarr's event loop."""
+    import numpy as np
+
+    rows = np.asarray(rows)
+    if len(rows) and np.all(np.diff(rows) == 1):
+        return arr[int(rows[0]):int(rows[-1]) + 1]
+    return arr.get_orthogonal_selection((rows,))
