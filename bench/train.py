@@ -33,7 +33,7 @@ from torch.utils.data import DataLoader
 from gtgen.config import load_config
 from gtgen.train.trainer import preset_overrides, _collate
 from gtgen.train.data import ShardDataset
-cfg = load_config(None, preset_overrides("tiny"))
+cfg = load_config(None, preset_overrides(sys.argv[3]))
 ds = ShardDataset(Path(sys.argv[1]), cfg.train, split="train")
 workers = int(sys.argv[2])
 dl = DataLoader(ds, batch_size=cfg.train.batch_size, shuffle=True, num_workers=workers, collate_fn=_collate,
@@ -65,9 +65,10 @@ if __name__ == "__main__":
     print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
     import subprocess, sys
 
-    for workers in (0, 2):
-        p = subprocess.run([sys.executable, "-c", LOADER, str(ws / "dataset.zarr"), str(workers)], capture_output=True, text=True, check=True)
-        print(f"ShardDataset (tiny preset) through a DataLoader with {workers} workers: {float(p.stdout.split()[-1]):.1f} samples/s")
+    for preset in ("tiny", "paper"):
+        for workers in (0, 2):
+            p = subprocess.run([sys.executable, "-c", LOADER, str(ws / "dataset.zarr"), str(workers), preset], capture_output=True, text=True, check=True)
+            print(f"ShardDataset ({preset} preset) through a DataLoader with {workers} workers: {float(p.stdout.split()[-1]):.1f} samples/s (goal >= 50)")
     p = subprocess.run([sys.executable, "-c", FORWARD], capture_output=True, text=True, check=True)
     fw, n = p.stdout.split()
     print(f"paper preset: {int(n) / 1e6:.1f} M parameters; forward pass of one sample on CPU {float(fw) * 1000:.0f} ms (paper: 100 ms on a GPU)")

@@ -130,3 +130,28 @@ def test_write_block_equals_zarr_writes(tmp_path):
     assert np.isnan(a["labels/micro/risk"][sc.SAMPLES_PER_SHARD + 2]).all()
     with pytest.raises(ValueError, match="not one shard"):
         write_block(tmp_path / "ours.zarr", 3, samples)
+
+
+def test_sample_reader_equals_zarr_on_every_dataset_array(dataset, tmp_path):
+    import zarr
+
+    from gtgen.storage.schema import SAMPLE_ARRAYS
+    from gtgen.storage.shards import SampleReader
+
+    g = zarr.open_group(str(dataset), mode="r")
+    S = g["meta/t_ns"].shape[0]
+    fast = 0
+    for spec in SAMPLE_ARRAYS:
+        path = spec.path
+        arr = g[path]
+        r = SampleReader(arr)
+        fast += r.fast
+        for k in sorted({0, 1, S // 2, S - 1}):
+            np.testing.assert_array_equal(r[k], arr[k], err_msg=path)
+    assert fast >= 10
+    # another layout (unsharded): the reader falls back to zarr
+    z = zarr.create_array(str(tmp_path / "plain.zarr"), shape=(3, 4), chunks=(2, 4), dtype="f4", fill_value=np.nan)
+    z[:] = np.arange(12, dtype="f4").reshape(3, 4)
+    r = SampleReader(z)
+    assert not r.fast
+    np.testing.assert_array_equal(r[2], z[2])

@@ -149,6 +149,24 @@ def test_filled_prior_and_nearest_baseline_by_hand():
     assert d[4, 1] == 0 and d[4, 8] == pytest.approx(6 / 9)
 
 
+def test_fast_gaussian_fill_equals_ndimage():
+    from scipy.ndimage import gaussian_filter
+
+    from gtgen.train.data import _gaussian, filled
+
+    def naive(a, sigma):
+        return np.stack([gaussian_filter(x, sigma, mode="constant", truncate=3.0) for x in a])
+
+    rng = np.random.default_rng(3)
+    for n in (40, 130):
+        w = rng.random((2, n, n))
+        for sigma in (1.0, 4.0, 16.0, 64.0, 256.0):  # ndimage below radius 12, FFTs above, kernels wider than the grid
+            np.testing.assert_allclose(_gaussian(w, sigma), naive(w, sigma), atol=1e-12)
+        g = rng.normal(size=(n, n)).cumsum(0)
+        g[np.hypot(*np.meshgrid(np.arange(n) - n / 2, np.arange(n) - n / 2)) > n / 6] = np.nan
+        np.testing.assert_allclose(filled(g), filled(g, naive), atol=1e-5)
+
+
 def test_weighted_risk_loss_weighs_fatal_cells():
     from gtgen.train.loss import risk_loss
 
