@@ -40,7 +40,7 @@ dl = DataLoader(ds, batch_size=cfg.train.batch_size, shuffle=True, num_workers=w
                 generator=torch.Generator().manual_seed(0), persistent_workers=workers > 0)
 it = iter(dl); next(it)  # workers started, first batch out
 n, t = 0, time.perf_counter()
-while n < 120:
+while n < 240:
     try:
         b = next(it)
     except StopIteration:

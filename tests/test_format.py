@@ -155,3 +155,23 @@ def test_sample_reader_equals_zarr_on_every_dataset_array(dataset, tmp_path):
     r = SampleReader(z)
     assert not r.fast
     np.testing.assert_array_equal(r[2], z[2])
+
+
+def test_range_reader_equals_zarr(dataset, tmp_path):
+    import zarr
+
+    from gtgen.storage.chunks import RangeReader
+
+    g = zarr.open_group(str(dataset), mode="r")
+    arr = g["inputs/voxel_points_m"]
+    off = g["inputs/voxel_offsets"][:]
+    r = RangeReader(arr)
+    assert r.sep is not None
+    c = arr.chunks[0]
+    for a, b in [(off[0], off[1]), (off[-2], off[-1]), (c - 5, c + 7), (0, 0), (len(off) and int(off[-1]) - 3, int(off[-1]) + 10)]:
+        np.testing.assert_array_equal(r(a, b), arr[a:b])
+    z = zarr.create_array(str(tmp_path / "p.zarr"), shape=(10, 3), chunks=(4, 2), dtype="f4", fill_value=0)
+    z[:] = np.arange(30, dtype="f4").reshape(10, 3)
+    r = RangeReader(z)
+    assert r.sep is None
+    np.testing.assert_array_equal(r(3, 9), z[3:9])

@@ -307,3 +307,43 @@ class Runs:
     def __exit__(self, *exc: object) -> None:
         if exc[0] is None:
             self.flush()
+
+
+class RangeReader:
+    """Reads ``arr[a:b]`` of an array chunked along axis 0 only (whole trailing axes per
+    chunk, as ``inputs/voxel_points_m``) from its chunk files, keeping the last decoded
+    chunk; zarr where the layout or store differs. Why: one zarr call costs about 3 ms of
+    its event loop, a sixth of what ShardDataset spends on a sample."""
+
+    def __init__(self, arr: Any) -> None:
+        self.arr = arr
+        self.sep: str | None = None
+        root = getattr(arr.store, "root", None)
+        if root is not None and tuple(arr.chunks[1:]) == tuple(arr.shape[1:]):
+            try:
+                self.sep = check_encoded_chunks(arr)
+            except ValueError:
+                pass
+        self.root = Path(root) if root is not None else None
+        self.c = int(arr.chunks[0])
+        self._last: tuple[int, np.ndarray] | None = None
+
+    def _chunk(self, i: int) -> np.ndarray:
+        if self._last is None or self._last[0] != i:
+            file = chunk_file(self.root, self.arr.path, (i,) + (0,) * (self.arr.ndim - 1), self.sep)
+            try:
+                data = file.read_bytes()
+            except FileNotFoundError:
+                data = None
+            self._last = (i, Encoded(data, np.dtype(self.arr.dtype), (self.c, *self.arr.shape[1:]), self.arr.fill_value).decode())
+        return self._last[1]
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        """Return rows ``a`` to ``b`` (exclusive)."""
+        b = min(int(b), int(self.arr.shape[0]))
+        if self.sep is None or b <= a:
+            return self.arr[int(a):b]
+        i0, i1 = int(a) // self.c, (b - 1) // self.c
+        parts = [self._chunk(i) for i in range(i0, i1 + 1)]
+        rows = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return rows[int(a) - i0 * self.c:b - i0 * self.c].copy()

@@ -18,6 +18,7 @@ from gtgen import codes
 from gtgen.config import GtgenConfig, TrainConfig
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
+from gtgen.storage.chunks import RangeReader
 from gtgen.storage.shards import SampleReader
 from gtgen.storage.stores import open_dataset
 
@@ -189,8 +190,8 @@ class ShardDataset(Dataset):
             names = ["inputs/images", "inputs/K", "inputs/T_target_base", "inputs/T_base_cam", "inputs/voxel_points_m", "inputs/raw_elevation_m"]
             names += [f"{grp}/{r}/{a}" for r in ("micro", "short") for grp, a in
                       (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"), ("xracer", "risk"))]
-            # per-sample arrays through SampleReader (no zarr call per read); the flat points by zarr
-            self._g = {n: g[n] if n == "inputs/voxel_points_m" else SampleReader(g[n]) for n in names}
+            # no zarr call per read: per-sample arrays through SampleReader, the flat points through RangeReader
+            self._g = {n: RangeReader(g[n]) if n == "inputs/voxel_points_m" else SampleReader(g[n]) for n in names}
         return self._g
 
     def _grid(self, arr: NDArray, rng: str) -> NDArray:
@@ -211,7 +212,7 @@ class ShardDataset(Dataset):
         T = g["inputs/T_target_base"][k] @ g["inputs/T_base_cam"][k]
         out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))
         a, b = self._offsets[k], self._offsets[k + 1]
-        pts = g["inputs/voxel_points_m"][a:b]
+        pts = g["inputs/voxel_points_m"](a, b)
         if len(pts) > self.max_points:
             pts = pts[np.linspace(0, len(pts) - 1, self.max_points).astype(np.int64)]
         padded = np.zeros((self.max_points, 3), np.float32)

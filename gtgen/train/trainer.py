@@ -261,7 +261,8 @@ def _reduce(results: list, fn):
     if (isinstance(first, (int, float)) and not isinstance(first, bool)) or first is None:
         if any(r is None for r in results):
             return None
-        return float(fn(np.array(results, np.float64)))
+        v = float(fn(np.array(results, np.float64)))
+        return int(v) if all(isinstance(r, int) for r in results) and v.is_integer() else v  # counts stay integers
     return first
 
 
