@@ -123,6 +123,18 @@ def _bushes(cfg: SynthConfig, bounds: tuple[float, float, float, float], path) -
     return uv[path.query(uv)[0] > 3.0]
 
 
+def _window(cu: float, cv: float, rad: float, u0: float, v0: float, res: float, nu: int, nv: int) -> tuple[slice, slice] | None:
+    """Return the cells of an (nu, nv) grid at origin (u0, v0) within ``rad`` of (cu, cv)
+    along each axis, or None when none is."""
+    i0 = max(int(np.floor((cu - rad - u0) / res)), 0)
+    i1 = min(int(np.ceil((cu + rad - u0) / res)) + 1, nu)
+    j0 = max(int(np.floor((cv - rad - v0) / res)), 0)
+    j1 = min(int(np.ceil((cv + rad - v0) / res)) + 1, nv)
+    if i0 >= i1 or j0 >= j1:
+        return None
+    return slice(i0, i1), slice(j0, j1)
+
+
 class Terrain:
     """The true world of a synthetic drive: ground, obstacle surface and risk."""
 
@@ -183,14 +195,7 @@ class Terrain:
         ob = self.obstacles
 
         def window(cu: float, cv: float, rad: float) -> tuple[slice, slice] | None:
-            i0 = int(np.floor((cu - rad - u0) / res))
-            i1 = int(np.ceil((cu + rad - u0) / res)) + 1
-            j0 = int(np.floor((cv - rad - v0) / res))
-            j1 = int(np.ceil((cv + rad - v0) / res)) + 1
-            i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, nu), min(j1, nv)
-            if i0 >= i1 or j0 >= j1:
-                return None
-            return slice(i0, i1), slice(j0, j1)
+            return _window(cu, cv, rad, u0, v0, res, nu, nv)
 
         for (cu, cv), r, hgt in zip(ob.rock_uv, ob.rock_radius, ob.rock_height):
             w = window(cu, cv, 2.5 * r)
