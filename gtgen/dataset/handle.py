@@ -55,7 +55,7 @@ class Dataset:
         ``preset`` (and a config layer over it): see ``gtgen.train.data.ShardDataset``."""
         from gtgen.config import load_config
         from gtgen.train.data import ShardDataset
-        from gtgen.train.trainer import preset_overrides
+        from gtgen.train.presets import preset_overrides
 
         cfg = load_config(None, preset_overrides(preset), *([config] if config else []))
         return ShardDataset(self.path, cfg.train, split=split)

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import GtgenError
+from gtgen.geometry import xy_to_index
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
 from gtgen.storage.stores import open_dataset, read_rows
@@ -46,6 +47,17 @@ LAYERS: dict[str, tuple[str, Any]] = {
     "count": ("uint16", 0),
     "last_obs_s": ("float32", float("nan")),
     "dem_elevation_m": ("float32", float("nan")),
+}
+
+
+# layer: (whose pixels: label or dem, dataset array per range)
+SOURCES: dict[str, tuple[str, str]] = {
+    "elevation_m": ("label", "labels/{r}/elevation_m"),
+    "risk": ("label", "labels/{r}/risk"),
+    "region": ("label", "labels/{r}/region"),
+    "count": ("label", "labels/{r}/count"),
+    "last_obs_s": ("label", "labels/{r}/last_dt_s"),
+    "dem_elevation_m": ("dem", "dem/{r}/elevation_m"),
 }
 
 
@@ -74,11 +86,6 @@ class _Mosaic:
         self.best = {k: np.full(shape, np.inf, np.float32) for k in ("label", "dem")}
         self.sample = {k: np.full(shape, -1, np.int32) for k in ("label", "dem")}
         self.cell = {k: np.zeros(shape, np.int32) for k in ("label", "dem")}
-
-    def transform(self) -> Any:
-        from rasterio.transform import from_origin
-
-        return from_origin(self.west, self.north, self.res, self.res)
 
 
 def _mosaic_grid(T: NDArray, length_m: float, res: float) -> tuple[float, float, int, int]:
@@ -123,10 +130,8 @@ def _footprint(m: _Mosaic, T: NDArray, size: int, res: float) -> tuple[tuple[sli
     dE, dN = E[None, :] - T[0, 3], N[:, None] - T[1, 3]
     x = T[0, 0] * dE + T[1, 0] * dN  # R^T (p - t): the target frame is yaw-only in the CRS
     y = T[0, 1] * dE + T[1, 1] * dN
-    i = np.floor((x + half) / res).astype(np.int64)
-    j = np.floor((y + half) / res).astype(np.int64)
-    inside = (i >= 0) & (i < size) & (j >= 0) & (j < size)
-    return (slice(r0, r1), slice(c0, c1)), np.where(inside, i * size + j, -1), (x * x + y * y).astype(np.float32)
+    i, j = xy_to_index(x, y, size, res)
+    return (slice(r0, r1), slice(c0, c1)), np.where(i >= 0, i * size + j, -1), (x * x + y * y).astype(np.float32)
 
 
 def _blocks(ks: NDArray) -> list[NDArray]:
@@ -149,41 +154,32 @@ def _composite(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, size: int, r
                 m.cell[kind][win] = np.where(take, cell, m.cell[kind][win])
 
 
-def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t0_ns: int) -> dict[str, NDArray]:
-    """Gather each layer's mosaic from the samples the composite picked: the pixels are
-    grouped by sample once (one sort), then each sample's arrays are read once."""
+def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -> dict[str, NDArray]:
+    """Gather each layer's mosaic from the samples the composite picked (``t_s``: each
+    sample's time after the drive's first, [s]): the pixels are grouped by sample once (one
+    sort), then each sample's arrays are read once."""
     out = {name: np.full((m.height, m.width), nodata, dtype) for name, (dtype, nodata) in LAYERS.items()}
     flat = {name: a.reshape(-1) for name, a in out.items()}
-    t_ns = g["meta/t_ns"][:]
     groups = {}
     for kind in ("label", "dem"):
         s = m.sample[kind].reshape(-1)
         pix = np.nonzero(s >= 0)[0]
         pix = pix[np.argsort(s[pix], kind="stable")]
-        sorted_s = s[pix]
-        groups[kind] = (pix, np.searchsorted(sorted_s, ks, "left"), np.searchsorted(sorted_s, ks, "right"), m.cell[kind].reshape(-1))
+        groups[kind] = (pix, np.searchsorted(s[pix], ks, "left"), np.searchsorted(s[pix], ks, "right"), m.cell[kind].reshape(-1))
     n = 0
     for block in _blocks(ks):
-        arrays = {v: read_rows(g[f"{v}"], block) for v in
-                  (f"dem/{r}/elevation_m", *(f"labels/{r}/{x}" for x in ("elevation_m", "risk", "region", "count", "last_dt_s")))}
+        arrays = {layer: read_rows(g[path.format(r=r)], block) for layer, (_, path) in SOURCES.items()}
         for b, k in enumerate(block):
-            z = T[k][2, 3]  # the placed base height: label heights are relative to it
-            pix, lo, hi, cell = groups["dem"]
-            p = pix[lo[n]:hi[n]]
-            if len(p):
-                flat["dem_elevation_m"][p] = arrays[f"dem/{r}/elevation_m"][b].ravel()[cell[p]] + z
-            pix, lo, hi, cell = groups["label"]
-            p = pix[lo[n]:hi[n]]
+            for layer, (kind, path) in SOURCES.items():
+                pix, lo, hi, cell = groups[kind]
+                p = pix[lo[n]:hi[n]]
+                v = arrays[layer][b].ravel()[cell[p]]
+                if layer in ("elevation_m", "dem_elevation_m"):
+                    v = v + T[k][2, 3]  # the placed base height: heights are relative to it
+                elif layer == "last_obs_s":
+                    v = v + float(t_s[k])
+                flat[layer][p] = v
             n += 1
-            if not len(p):
-                continue
-            c = cell[p]
-            lab = {x: arrays[f"labels/{r}/{x}"][b].ravel()[c] for x in ("elevation_m", "risk", "region", "count", "last_dt_s")}
-            flat["elevation_m"][p] = lab["elevation_m"] + z
-            flat["risk"][p] = lab["risk"]
-            flat["region"][p] = lab["region"]
-            flat["count"][p] = lab["count"]
-            flat["last_obs_s"][p] = lab["last_dt_s"] + (int(t_ns[k]) - t0_ns) * 1e-9
     return out
 
 
@@ -241,31 +237,35 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -
         for name, ks in groups:
             if not len(ks):
                 continue
-            crs = info.attrs.drives[int(drive[ks[0]])].crs
-            t0 = int(t_ns[np.nonzero(drive == drive[ks[0]])[0]].min())
+            d = int(drive[ks[0]])
+            t_s = (t_ns - t_ns[drive == d].min()) * 1e-9  # after the drive's first sample
             for r in RANGES:
-                gr = cfg.grids.get(r)
-                west, north, width, height = _mosaic_grid(T[ks], gr.length_m, gr.resolution_m)
-                from rasterio.transform import from_origin
-                from rasterio.windows import Window
-
-                folder = tmp / name / r
-                bands = _open_bands(folder, r, width, height, crs, from_origin(west, north, gr.resolution_m, gr.resolution_m))
-                try:
-                    for r0, c0, h, w, near in track(_tiles(T, ks, west, north, width, height, gr.resolution_m, gr.length_m),
-                                                    f"export geotiff: {name} {r}"):
-                        m = _Mosaic(west + c0 * gr.resolution_m, north - r0 * gr.resolution_m, gr.resolution_m, w, h)
-                        _composite(m, g, r, near, T, gr.size, gr.resolution_m)
-                        used = np.unique(np.concatenate([m.sample["label"][m.sample["label"] >= 0], m.sample["dem"][m.sample["dem"] >= 0]]))
-                        if not len(used):
-                            continue
-                        for layer, band in _layers(m, g, r, used, T, t0).items():
-                            bands[layer].write(band, 1, window=Window(c0, r0, w, h))
-                finally:
-                    for ds in bands.values():
-                        ds.close()
-                for layer in LAYERS:
-                    _to_cog(folder / f".{layer}.tif", folder / f"{layer}.tif")
+                for layer in _write_mosaic(tmp / name / r, g, r, cfg.grids.get(r), ks, T, t_s, info.attrs.drives[d].crs):
                     res.files.append(out / name / r / f"{layer}.tif")
             res.samples += len(ks)
     return res
+
+
+def _write_mosaic(folder: Path, g: Any, r: str, gr: Any, ks: NDArray, T: NDArray, t_s: NDArray, crs: str) -> list[str]:
+    """Write the COGs of range ``r`` for samples ``ks`` into ``folder``, tile by tile;
+    return the layers written."""
+    from rasterio.transform import from_origin
+    from rasterio.windows import Window
+
+    res_m = gr.resolution_m
+    west, north, width, height = _mosaic_grid(T[ks], gr.length_m, res_m)
+    bands = _open_bands(folder, r, width, height, crs, from_origin(west, north, res_m, res_m))
+    try:
+        for r0, c0, h, w, near in track(_tiles(T, ks, west, north, width, height, res_m, gr.length_m), f"export geotiff: {r}"):
+            m = _Mosaic(west + c0 * res_m, north - r0 * res_m, res_m, w, h)
+            _composite(m, g, r, near, T, gr.size, res_m)
+            used = np.unique(np.concatenate([s[s >= 0] for s in m.sample.values()]))
+            if len(used):
+                for layer, band in _layers(m, g, r, used, T, t_s).items():
+                    bands[layer].write(band, 1, window=Window(c0, r0, w, h))
+    finally:
+        for ds in bands.values():
+            ds.close()
+    for layer in LAYERS:
+        _to_cog(folder / f".{layer}.tif", folder / f"{layer}.tif")
+    return list(LAYERS)

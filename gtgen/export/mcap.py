@@ -38,6 +38,7 @@ from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.progress import track
+from gtgen.storage.chunks import RangeReader
 from gtgen.storage.stores import open_dataset, read_rows
 
 LABEL_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence", "region": "region",
@@ -98,6 +99,7 @@ def export_mcap(dataset: Path, out: Path) -> McapExport:
     order = np.lexsort((t_ns, drive))
     origin = {int(d): T[order[np.nonzero(drive[order] == d)[0][0]], :3, 3].copy() for d in np.unique(drive)}
     offsets = g["inputs/voxel_offsets"][:]
+    points = RangeReader(g["inputs/voxel_points_m"])
     fac = MessageFactory(ros1=False)
     res = McapExport(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -109,21 +111,15 @@ def export_mcap(dataset: Path, out: Path) -> McapExport:
                 ks = np.sort(order[a:a + BLOCK])  # read one block in index order, write in time order
                 block = _read_block(g, ks, cams)
                 for k in order[a:a + BLOCK]:
-                    _write_sample(fac, topics, block, int(np.searchsorted(ks, k)), int(k), int(t_ns[k]), T[k] - _shift(origin[int(drive[k])]),
-                                  cams, cfg, offsets, g)
+                    T_map = T[k].copy()
+                    T_map[:3, 3] -= origin[int(drive[k])]
+                    _write_sample(fac, topics, block, int(np.searchsorted(ks, k)), int(k), int(t_ns[k]), T_map, cams, cfg, points, offsets)
         finally:
             w.close()  # type: ignore[attr-defined]
         shutil.move(str(next((Path(scratch) / "bag").glob("*.mcap"))), tmp)
     res.samples = len(order)
     res.counts = dict(sorted(topics.counts.items()))
     return res
-
-
-def _shift(origin: NDArray) -> NDArray:
-    """Return the 4x4 whose subtraction moves a CRS placement into the drive's ``map``."""
-    s = np.zeros((4, 4))
-    s[:3, 3] = origin
-    return s
 
 
 def _read_block(g: object, ks: NDArray, cams: list[str]) -> dict[str, NDArray]:
@@ -140,7 +136,7 @@ def _tf(fac: object, t: int, parent: str, child: str, T: NDArray) -> object:
 
 
 def _write_sample(fac, topics: _Topics, block: dict[str, NDArray], i: int, k: int, t: int, T_map_target: NDArray,
-                  cams: list[str], cfg, offsets: NDArray, g) -> None:
+                  cams: list[str], cfg, points: RangeReader, offsets: NDArray) -> None:
     """Write sample ``k`` (row ``i`` of ``block``) at stamp ``t``."""
     tfs = [_tf(fac, t, "map", "target", T_map_target), _tf(fac, t, "target", "base_link", block["inputs/T_target_base"][i])]
     tfs += [_tf(fac, t, "base_link", f"camera_{c}", block["inputs/T_base_cam"][i, ci]) for ci, c in enumerate(cams)]
@@ -164,6 +160,6 @@ def _write_sample(fac, topics: _Topics, block: dict[str, NDArray], i: int, k: in
                      fac.serialize(msg, "sensor_msgs/msg/CompressedImage"))
         msg = fac.camera_info(t, f"camera_{c}", img.shape[1], img.shape[0], block["inputs/K"][i, ci], k)
         topics.write(f"/gtgen/camera_{c}/camera_info", "sensor_msgs/msg/CameraInfo", t, fac.serialize(msg, "sensor_msgs/msg/CameraInfo"))
-    pts = g["inputs/voxel_points_m"][int(offsets[k]):int(offsets[k + 1])]
+    pts = points(int(offsets[k]), int(offsets[k + 1]))
     msg = fac.pointcloud_xyz(t, "target", pts, k)
     topics.write("/gtgen/voxel_points", "sensor_msgs/msg/PointCloud2", t, fac.serialize(msg, "sensor_msgs/msg/PointCloud2"))
