@@ -224,6 +224,7 @@ class DemConfig(_Model):
     min_window_fixes: int = Field(10, ge=1, description="fewest usable fixes in the window for the GNSS check (fewer: GNSS is not consulted)")
     max_gnss_offset_m: float = Field(5.0, gt=0, description="reject a sample whose placement puts the window's fixes farther than this (median) from the track [m]")
     judge_within_m: float = Field(20.0, gt=0, description="tiles are judged by samples whose prior is a kept placement at most this far back [m]")
+    carry_over_m: float = Field(20.0, ge=0, description="a sample mostly over set-aside tiles is kept at the last kept placement carried by odometry (not refined by ICP, not filled from those tiles) while that placement is at most this far back; farther, or 0, it is rejected as suspect_tile [m]")
     max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree (a shifted tile, another place, a stale survey)")
     min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before it is judged")
 

@@ -14,7 +14,7 @@ from gtgen import codes
 from gtgen.config import SynthConfig
 from gtgen.dem.place import DrivePlacement, vegetation
 from gtgen.dem.tiles import DemMosaic, TileIndex
-from gtgen.geometry import quat_to_yaw
+from gtgen.geometry import quat_to_yaw, yaw_transform
 from gtgen.storage.chunks import ChunkFiles
 from gtgen.storage.stores import open_drive, open_fused
 from gtgen.synth.dem import altered_tiles, tile_lattice
@@ -144,6 +144,27 @@ def test_decision_keeps_a_good_sample_and_rejects_constructed_bad_ones(placed, d
     p.gnss_xy[:, 2] += 30.0
     off = p.place(*good)
     assert off.reason == codes.GNSS_DISAGREES, off.signals
+
+
+def test_a_sample_over_set_aside_tiles_is_carried_by_odometry_for_carry_over_m(placed, drive_dir, cfg):
+    k = 6
+    p = _placement(cfg, placed, drive_dir)
+    for j in range(k):  # chain up to k as dem-align does
+        p.place(*_sample(placed, j))
+    T_prior, kept_at = p.T_prior.copy(), p.kept_at_m
+    k_, t, pos, yaw, region, elev, dist = _sample(placed, k)
+    T = T_prior @ yaw_transform(*pos, yaw)
+    under = frozenset(int(i) for i in np.unique(p._tiles_at(T, codes.observed(region))) if i >= 0)
+    q = p.without(under)  # every tile under the sample set aside
+    q.T_prior, q.chained, q.kept_at_m = T_prior, True, kept_at
+    carried = q.place(k_, t, pos, yaw, region, elev, dist)
+    assert carried.reason == codes.OK and carried.icp is None, carried.signals
+    np.testing.assert_allclose(carried.T_crs_target, T)  # the last kept placement, carried by odometry
+    assert q.kept_at_m == kept_at and np.array_equal(q.T_prior, T_prior)  # the chain is not renewed by it
+    stale = q.place(k_, t, pos, yaw, region, elev, kept_at + cfg.dem.carry_over_m + 1.0)
+    assert stale.reason == codes.SUSPECT_TILE
+    q.cfg = cfg.model_copy(update={"dem": cfg.dem.model_copy(update={"carry_over_m": 0.0})})
+    assert q.place(k_, t, pos, yaw, region, elev, dist).reason == codes.SUSPECT_TILE
 
 
 def test_canopy_cells_are_left_out_of_the_icp_source(placed, drive_dir, cfg):

@@ -31,6 +31,8 @@ def report(
     rep = build_report(dataset, out)
     c = rep.card
     rows: list[tuple[str, Any]] = [("dataset", c["dataset"]), ("samples kept", c["samples_kept"])]
+    if c.get("samples_kept_by_odometry"):
+        rows.append(("  of them by odometry over set-aside tiles", c["samples_kept_by_odometry"]))
     rows += [(f"  rejected: {k}", v) for k, v in c["samples_rejected"].items()]
     rows += [(f"  split {k}", v) for k, v in c["split"].items()]
     for r, cov in c.get("coverage", {}).items():

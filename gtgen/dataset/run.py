@@ -139,7 +139,9 @@ def _record(rows: list[tuple], writer: ShardWriter, suspect: frozenset[int], pla
             writer.reject(t, 0, p.reason, pos_odom_m=pos, yaw_odom_rad=yaw, **_qa(p))
         else:
             s = p.signals
-            kept.append(Kept(k, p.T_crs_target, p.icp.fitness, p.icp.rmse_m, p.icp.T, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
+            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m)
+            fit, rmse, C = (p.icp.fitness, p.icp.rmse_m, p.icp.T) if p.icp else (np.nan, np.nan, np.eye(4))
+            kept.append(Kept(k, p.T_crs_target, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
     return kept
 
 

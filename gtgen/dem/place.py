@@ -156,18 +156,24 @@ class DrivePlacement:
         T_prior = self.T_prior @ T_odom_target
         dem = dem_patch(self.dem, T_prior, self.X, self.Y)
         obs = codes.observed(region) & np.isfinite(elev)
-        if not np.isfinite(dem).any():
+        # a sample mostly on tiles set aside is not refined (ICP on the cells off them drifts
+        # along the tiles' edge: measured on configs/adversity.yaml, worse than odometry
+        # alone): it keeps the last kept placement carried by odometry while that is recent
+        aside = bool(self.dem.exclude) and bool(obs.any()) and self._on_set_aside(T_prior, obs) > 0.5
+        if not aside and not np.isfinite(dem).any():
             return Placement(codes.NO_DEM)
         if obs.sum() < MIN_ICP_POINTS:
             return Placement(codes.TOO_FEW_POINTS)
-        # a sample mostly on tiles set aside is not placed (ICP on the cells off them drifts
-        # along the tiles' edge: measured on configs/adversity.yaml, worse than odometry alone)
-        if self.dem.exclude and self._on_set_aside(T_prior, obs) > 0.5:
-            return Placement(codes.SUSPECT_TILE, T_crs_target=T_prior)
         both = obs & np.isfinite(dem)  # cells without DEM (set-aside tiles, gaps) have nothing to fit
         d = np.where(both, elev - dem, 0.0)
         veg = vegetation(d, both, dc.vegetation_m) if both.any() else both
         age = abs(distance_m - self.kept_at_m) if self.chained else np.inf  # travel since the prior's kept sample
+        if aside:
+            if not (self.chained and age <= dc.carry_over_m):
+                return Placement(codes.SUSPECT_TILE, T_crs_target=T_prior)
+            sig = self._signals(None, T_prior, T_odom_target, t_ns, elev, both & ~veg, dem)
+            sig.update(vegetation_share=float(veg.sum() / max(obs.sum(), 1)), prior_age_m=float(age))
+            return Placement(codes.OK, None, T_prior, sig)  # the chain is not renewed: its age keeps growing
         stale = self.chained and age > dc.judge_within_m  # odometry has drifted since
         res = self._icp(k, both & ~veg, elev, dem, coarse=stale)
         T = T_prior @ res.T
@@ -198,13 +204,13 @@ class DrivePlacement:
         init = icp_4dof(src, tgt, nrm, COARSE * dc.icp_max_distance_m, dc.icp_iterations).T if coarse else None
         return icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations, init=init)
 
-    def _signals(self, res: IcpResult, T: NDArray, T_odom_target: NDArray, t_ns: int, elev: NDArray, ground: NDArray,
+    def _signals(self, res: IcpResult | None, T: NDArray, T_odom_target: NDArray, t_ns: int, elev: NDArray, ground: NDArray,
                  aligned: NDArray) -> dict[str, float]:
         """The evidence on a placement ``T``: the correction over the prior, the disagreement of
         the observed ground with the DEM there (``aligned``), and the offset of the window's
         GNSS fixes."""
         dc = self.cfg.dem
-        C = res.T
+        C = np.eye(4) if res is None else res.T  # None: placed by odometry alone
         g = ground & np.isfinite(aligned)
         dev = np.abs(elev[g] - aligned[g])
         win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
@@ -216,7 +222,7 @@ class DrivePlacement:
             offset = float(np.median(np.linalg.norm(placed - xy[:, 2:], axis=1)))
         return {"correction_xy_m": float(np.hypot(C[0, 3], C[1, 3])), "correction_z_m": float(abs(C[2, 3])),
                 "correction_yaw_deg": float(abs(np.degrees(np.arctan2(C[1, 0], C[0, 0])))),
-                "disagreement": float((dev > dc.disagreement_m).mean()) if len(dev) else 1.0,
+                "disagreement": float((dev > dc.disagreement_m).mean()) if len(dev) else (1.0 if res is not None else np.nan),
                 "gnss_offset_m": offset, "gnss_fixes": int(win.sum())}
 
     def _decide(self, res: IcpResult, sig: dict[str, float], allowed_m: float = 0.0) -> int:

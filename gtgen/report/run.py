@@ -49,6 +49,7 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40) -> R
     rep.card = {
         "dataset": str(dataset),
         "samples_kept": S,
+        "samples_kept_by_odometry": int(np.isnan(fit).sum()),  # over set-aside tiles, no ICP (dem.carry_over_m)
         "samples_rejected": {codes.reason_name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
         "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
         "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(g, r, idx).items()} for r in RANGES} if S else {},
