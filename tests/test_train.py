@@ -149,49 +149,22 @@ def test_filled_prior_and_nearest_baseline_by_hand():
     assert d[4, 1] == 0 and d[4, 8] == pytest.approx(6 / 9)
 
 
-def _pull_push_naive(grid):
-    """The pull-push fill cell by cell, as its docstring defines it (the oracle)."""
-    ok = np.isfinite(grid)
-    levels = [(ok.astype(float), np.where(ok, grid, 0.0))]
-    while max(levels[-1][0].shape) > 1:
-        w, s = levels[-1]
-        H, W = (w.shape[0] + 1) // 2, (w.shape[1] + 1) // 2
-        w2, s2 = np.zeros((H, W)), np.zeros((H, W))
-        for i in range(w.shape[0]):
-            for j in range(w.shape[1]):
-                w2[i // 2, j // 2] += w[i, j]
-                s2[i // 2, j // 2] += s[i, j]
-        levels.append((w2, s2))
-    f = levels[-1][1] / levels[-1][0]
-    for w, s in levels[-2::-1]:
-        g = np.zeros(w.shape)
-        for i in range(w.shape[0]):
-            for j in range(w.shape[1]):
-                y, x = (i + 0.5) / 2 - 0.5, (j + 0.5) / 2 - 0.5  # this cell's centre in the level above
-                y0 = min(max(int(np.floor(y)), 0), f.shape[0] - 1)
-                x0 = min(max(int(np.floor(x)), 0), f.shape[1] - 1)
-                y1, x1 = min(y0 + 1, f.shape[0] - 1), min(x0 + 1, f.shape[1] - 1)
-                fy, fx = min(max(y - y0, 0.0), 1.0), min(max(x - x0, 0.0), 1.0)
-                up = (f[y0, x0] * (1 - fy) * (1 - fx) + f[y0, x1] * (1 - fy) * fx
-                      + f[y1, x0] * fy * (1 - fx) + f[y1, x1] * fy * fx)
-                a = min(w[i, j], 1.0)
-                g[i, j] = a * (s[i, j] / w[i, j] if w[i, j] > 0 else 0.0) + (1 - a) * up
-        f = g
-    f[ok] = grid[ok]
-    return f
+def test_fast_gaussian_fill_equals_ndimage():
+    from scipy.ndimage import gaussian_filter
 
+    from gtgen.train.data import _gaussian, filled
 
-def test_pull_push_fill_equals_the_per_cell_oracle():
-    from gtgen.train.data import filled
+    def naive(a, sigma):
+        return np.stack([gaussian_filter(x, sigma, mode="constant", truncate=3.0) for x in a])
 
     rng = np.random.default_rng(3)
-    for shape in ((16, 16), (13, 11), (1, 7), (33, 20)):  # powers of two, odd sizes, a single row
-        g = rng.normal(size=shape).cumsum(0)
-        g[rng.random(shape) < 0.8] = np.nan
-        g.flat[rng.integers(g.size)] = 1.0  # at least one valid cell
-        f = filled(g)
-        np.testing.assert_allclose(f, _pull_push_naive(g), atol=1e-5)
-        assert np.isfinite(f).all() and np.array_equal(f[np.isfinite(g)], g[np.isfinite(g)].astype(np.float32))
+    for n in (40, 130):
+        w = rng.random((2, n, n))
+        for sigma in (1.0, 4.0, 16.0, 64.0, 256.0):  # ndimage below radius 12, FFTs above, kernels wider than the grid
+            np.testing.assert_allclose(_gaussian(w, sigma), naive(w, sigma), atol=1e-12)
+        g = rng.normal(size=(n, n)).cumsum(0)
+        g[np.hypot(*np.meshgrid(np.arange(n) - n / 2, np.arange(n) - n / 2)) > n / 6] = np.nan
+        np.testing.assert_allclose(filled(g), filled(g, naive), atol=1e-5)
 
 
 def test_weighted_risk_loss_weighs_fatal_cells():
