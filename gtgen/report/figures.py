@@ -44,7 +44,11 @@ def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
     if rep.card["samples_kept"]:
         en = g["meta/crs_en_m"][:]
         fig, ax = plt.subplots(figsize=(6, 6))
-        sc = ax.scatter(en[:, 0], en[:, 1], c=fit, cmap="viridis", vmin=0, vmax=1, s=12)
+        icp = np.isfinite(fit)
+        sc = ax.scatter(en[icp, 0], en[icp, 1], c=fit[icp], cmap="viridis", vmin=0, vmax=1, s=12)
+        if not icp.all():  # kept by odometry over set-aside tiles (dem.carry_over_m)
+            ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="kept by odometry, no ICP")
+            ax.legend(fontsize=8)
         ax.set_aspect("equal")
         ax.set_title("sample positions (DEM CRS), colour = ICP fitness")
         fig.colorbar(sc)

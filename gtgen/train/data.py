@@ -203,14 +203,14 @@ class ShardDataset(Dataset):
 
     def _images(self, raw: NDArray[np.uint8]) -> NDArray[np.float32]:
         """Return the cameras' images (n, H, W, 3 uint8) at the model's size, as (n, 3, h, w)
-        ImageNet-normalised: resampled and transposed as bytes, then one scale and shift."""
+        ImageNet-normalised: resampled as bytes, one scale and one shift in place, transposed."""
         ri, ci = self._img_ix
         if len(ri) != raw.shape[1] or len(ci) != raw.shape[2]:  # the stored size is the model's: no resampling
             raw = raw[:, ri][:, :, ci]
-        x = np.ascontiguousarray(raw.transpose(0, 3, 1, 2)).astype(np.float32)
-        x *= (1.0 / (255.0 * IMAGE_STD))[:, None, None]
-        x -= (IMAGE_MEAN / IMAGE_STD)[:, None, None]
-        return x
+        x = raw.astype(np.float32)
+        x *= 1.0 / (255.0 * IMAGE_STD)
+        x -= IMAGE_MEAN / IMAGE_STD
+        return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
 
     def _grid(self, arr: NDArray, rng: str) -> NDArray:
         ix = self._ix[rng]
