@@ -164,28 +164,26 @@ class DrivePlacement:
             return Placement(codes.NO_DEM)
         if obs.sum() < MIN_ICP_POINTS:
             return Placement(codes.TOO_FEW_POINTS)
+        age = abs(distance_m - self.kept_at_m) if self.chained else np.inf  # travel since the prior's kept sample
+        if aside and not (self.chained and age <= dc.carry_over_m):
+            return Placement(codes.SUSPECT_TILE, T_crs_target=T_prior)
         both = obs & np.isfinite(dem)  # cells without DEM (set-aside tiles, gaps) have nothing to fit
         d = np.where(both, elev - dem, 0.0)
         veg = vegetation(d, both, dc.vegetation_m) if both.any() else both
-        age = abs(distance_m - self.kept_at_m) if self.chained else np.inf  # travel since the prior's kept sample
-        if aside:
-            if not (self.chained and age <= dc.carry_over_m):
-                return Placement(codes.SUSPECT_TILE, T_crs_target=T_prior)
-            sig = self._signals(None, T_prior, T_odom_target, t_ns, elev, both & ~veg, dem)
-            sig.update(vegetation_share=float(veg.sum() / max(obs.sum(), 1)), prior_age_m=float(age))
-            return Placement(codes.OK, None, T_prior, sig)  # the chain is not renewed: its age keeps growing
+        ground = both & ~veg
+        extra = {"vegetation_share": float(veg.sum() / max(obs.sum(), 1)), "prior_age_m": float(age)}
+        if aside:  # kept where odometry carries the prior; the chain is not renewed: its age keeps growing
+            return Placement(codes.OK, None, T_prior, {**self._signals(None, T_prior, T_odom_target, t_ns, elev, ground, dem), **extra})
         stale = self.chained and age > dc.judge_within_m  # odometry has drifted since
-        res = self._icp(k, both & ~veg, elev, dem, coarse=stale)
+        res = self._icp(k, ground, elev, dem, coarse=stale)
         T = T_prior @ res.T
         aligned = dem_patch(self.dem, T, self.X, self.Y)
-        sig = self._signals(res, T, T_odom_target, t_ns, elev, both & ~veg, aligned)
-        sig["vegetation_share"] = float(veg.sum() / max(obs.sum(), 1))
-        sig["prior_age_m"] = float(age)
+        sig = {**self._signals(res, T, T_odom_target, t_ns, elev, ground, aligned), **extra}
         reason = self._decide(res, sig, dc.drift_allowance * age if self.chained else 0.0)
         if self.chained and not stale:  # a prior to judge the DEM by
-            self._judge_tiles(T_prior, both & ~veg, d)
+            self._judge_tiles(T_prior, ground, d)
             if res.fitness >= dc.min_fitness and res.rmse_m <= dc.max_rmse_m and k % 2 == 0:
-                self._judge_borders(k, T, both & ~veg, elev, aligned)
+                self._judge_borders(k, T, ground, elev, aligned)
         if reason == codes.OK:
             self.T_prior = T @ invert(T_odom_target)
             self.chained, self.kept_at_m = True, distance_m

@@ -50,14 +50,15 @@ LAYERS: dict[str, tuple[str, Any]] = {
 }
 
 
-# layer: (whose pixels: label or dem, dataset array per range)
-SOURCES: dict[str, tuple[str, str]] = {
-    "elevation_m": ("label", "labels/{r}/elevation_m"),
-    "risk": ("label", "labels/{r}/risk"),
-    "region": ("label", "labels/{r}/region"),
-    "count": ("label", "labels/{r}/count"),
-    "last_obs_s": ("label", "labels/{r}/last_dt_s"),
-    "dem_elevation_m": ("dem", "dem/{r}/elevation_m"),
+# layer: (whose pixels: label or dem, dataset array per range, what each sample adds:
+# "z" its placed base height (heights are relative to it), "t" its time after the drive's first)
+SOURCES: dict[str, tuple[str, str, str | None]] = {
+    "elevation_m": ("label", "labels/{r}/elevation_m", "z"),
+    "risk": ("label", "labels/{r}/risk", None),
+    "region": ("label", "labels/{r}/region", None),
+    "count": ("label", "labels/{r}/count", None),
+    "last_obs_s": ("label", "labels/{r}/last_dt_s", "t"),
+    "dem_elevation_m": ("dem", "dem/{r}/elevation_m", "z"),
 }
 
 
@@ -168,17 +169,13 @@ def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -
         groups[kind] = (pix, np.searchsorted(s[pix], ks, "left"), np.searchsorted(s[pix], ks, "right"), m.cell[kind].reshape(-1))
     n = 0
     for block in _blocks(ks):
-        arrays = {layer: read_rows(g[path.format(r=r)], block) for layer, (_, path) in SOURCES.items()}
+        arrays = {layer: read_rows(g[path.format(r=r)], block) for layer, (_, path, _) in SOURCES.items()}
         for b, k in enumerate(block):
-            for layer, (kind, path) in SOURCES.items():
+            add = {None: 0, "z": T[k][2, 3], "t": float(t_s[k])}
+            for layer, (kind, _, plus) in SOURCES.items():
                 pix, lo, hi, cell = groups[kind]
                 p = pix[lo[n]:hi[n]]
-                v = arrays[layer][b].ravel()[cell[p]]
-                if layer in ("elevation_m", "dem_elevation_m"):
-                    v = v + T[k][2, 3]  # the placed base height: heights are relative to it
-                elif layer == "last_obs_s":
-                    v = v + float(t_s[k])
-                flat[layer][p] = v
+                flat[layer][p] = arrays[layer][b].ravel()[cell[p]] + add[plus]
             n += 1
     return out
 

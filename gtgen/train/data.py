@@ -205,7 +205,7 @@ class ShardDataset(Dataset):
         """Return the cameras' images (n, H, W, 3 uint8) at the model's size, as (n, 3, h, w)
         ImageNet-normalised: resampled as bytes, one scale and one shift in place, transposed."""
         ri, ci = self._img_ix
-        if len(ri) != raw.shape[1] or len(ci) != raw.shape[2]:  # the stored size is the model's: no resampling
+        if len(ri) != raw.shape[1] or len(ci) != raw.shape[2]:  # else the stored size is the model's
             raw = raw[:, ri][:, :, ci]
         x = raw.astype(np.float32)
         x *= 1.0 / (255.0 * IMAGE_STD)
