@@ -272,6 +272,7 @@ class TrainConfig(_Model):
     fatal_risk: float = Field(0.5, gt=0, lt=1, description="fatal-risk threshold for P/R/F1")
     risk_loss: Literal["mse", "weighted_mse", "weighted_bce"] = Field("weighted_bce", description="risk loss: the paper's MSE, or MSE / binary cross-entropy with the fatal cells weighted risk_fatal_weight times")
     risk_fatal_weight: float = Field(10.0, ge=1, description="weight of the fatal cells (label >= fatal_risk) in weighted_mse and weighted_bce")
+    mirror_p: float = Field(0.5, ge=0, le=1, description="probability that a training sample is mirrored left-right (inputs and labels alike; 0: off)")
     lr: float = Field(5e-4, gt=0, description="peak learning rate (OneCycle)")
     steps: int = Field(16000, ge=1, description="optimizer steps")
     batch_size: int = Field(4, ge=1, description="samples per step")

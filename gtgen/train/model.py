@@ -12,6 +12,17 @@ from torch import nn
 
 from gtgen.config import TrainConfig
 
+IMAGE_MEAN = (0.485, 0.456, 0.406)
+IMAGE_STD = (0.229, 0.224, 0.225)
+
+
+def normalize_images(images: torch.Tensor) -> torch.Tensor:
+    """Return uint8 RGB images (..., 3, h, w) as ImageNet-normalised float32 (on their device:
+    the loader ships bytes, a quarter of the floats' size, and does no arithmetic)."""
+    mean = images.new_tensor(IMAGE_MEAN, dtype=torch.float32)[:, None, None]
+    std = images.new_tensor(IMAGE_STD, dtype=torch.float32)[:, None, None]
+    return (images.float() * (1.0 / 255.0) - mean) / std
+
 
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
@@ -60,7 +71,7 @@ class LiftSplat(nn.Module):
 
     def forward(self, images: torch.Tensor, K: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
         B, N, _, H, W = images.shape
-        f = self.head(self.backbone(images.flatten(0, 1)))
+        f = self.head(self.backbone(normalize_images(images.flatten(0, 1))))
         h, w = f.shape[-2:]
         depth = f[:, : self.D].softmax(1)
         feat = f[:, self.D :]

@@ -18,6 +18,7 @@ from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: th
 from gtgen.errors import ConfigError, TrainError
 from gtgen.runtime.output import atomic_output, lock, write_atomic
 from gtgen.runtime.progress import track
+from gtgen.train.augment import mirror
 from gtgen.train.data import ShardDataset, nearest_filled
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
@@ -34,7 +35,8 @@ EVAL_ROWS = {
     "raw": "raw elevation (min z)",
     "raw_nearest": "raw min z, nearest-filled",
 }
-CKPT_VERSION = 3  # 2: heads correct a smoothed min-z prior; 3: the prior filled everywhere is an input, four-level U-Net
+CKPT_VERSION = 4  # 2: heads correct a smoothed min-z prior; 3: the prior filled everywhere is an input, four-level U-Net;
+# 4: the prior filled on a pyramid, the micro prior at the points grid's resolution, images as bytes
 
 
 def seed_everything(seed: int) -> None:
@@ -126,7 +128,7 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
         return f"loss {history[-1]['total']:.4f}" if history else ""
 
     for _ in track(range(step, end), "train:", status=status):
-        batch = _to(next(it), tc.device)
+        batch = _to(_augment(next(it), tc, step), tc.device)
         pred = model(batch)
         loss, parts = total_loss(pred, batch, tc)
         opt.zero_grad(set_to_none=True)
@@ -146,6 +148,16 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
     _link_latest(run_dir)
     first = history[0]["total"] if history else float("nan")
     return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
+
+
+def _augment(batch: dict, tc: TrainConfig, step: int) -> dict:
+    """Return the training batch with each sample mirrored left-right with probability
+    ``tc.mirror_p``; the draw depends on the seed and the step only (a resumed run draws
+    the same)."""
+    if tc.mirror_p <= 0:
+        return batch
+    g = torch.Generator().manual_seed(tc.seed * 1_000_003 + step)
+    return mirror(batch, torch.rand(len(batch["index"]), generator=g) < tc.mirror_p)
 
 
 def _resume(ckpt_path: Path, tc: TrainConfig, model: MMLite, opt, sched) -> tuple[int, list]:
@@ -203,9 +215,7 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
                          "evaluate with --split all, or build more drives")
     if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
         raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
-    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
-    model.load_state_dict(state["model"])
-    model.eval()
+    model = _trained_model(state, tc, data_cfg)
     clip = tc.elevation_clip_m
     acc = {r: {m: ElevationMAE() for m in EVAL_ROWS} for r in ("micro", "short")}
     risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in ("model", "xracer")} for r in ("micro", "short")}
@@ -266,12 +276,17 @@ def _reduce(results: list, fn):
     return first
 
 
+def _trained_model(state: dict, tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
+    """Return the checkpoint's model in eval mode."""
+    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
+    model.load_state_dict(state["model"])
+    return model.eval()
+
+
 def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarray]:
     """Return the model's maps for dataset sample ``index`` (elevation in metres)."""
     state, tc, data_cfg = _load_ckpt(ckpt)
-    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
-    model.load_state_dict(state["model"])
-    model.eval()
+    model = _trained_model(state, tc, data_cfg)
     ds = ShardDataset(dataset, tc)
     pos = np.nonzero(ds.indices == index)[0]
     if not len(pos):
