@@ -344,6 +344,19 @@ def build_config(*layers: dict[str, Any]) -> GtgenConfig:
         raise ConfigError(_format_validation(err)) from err
 
 
+def stored_config(data: dict[str, Any], source: str) -> GtgenConfig:
+    """Return the resolved config a store or checkpoint recorded (``source`` names it in
+    the error). Its ``train`` section is left out (defaults): how the maker of a dataset
+    would train says nothing about the data, and trainer keys change between versions, so
+    a dataset stays readable by a gtgen whose trainer has other keys. Raises ConfigError,
+    one line, for any other key this gtgen does not accept."""
+    try:
+        return GtgenConfig.model_validate({k: v for k, v in data.items() if k != "train"})
+    except ValidationError as err:
+        raise ConfigError(f"{source} records a config this gtgen does not accept ({_format_validation(err)}); "
+                          "rebuild it with this version") from err
+
+
 def load_config(path: Path | None = None, *overrides: dict[str, Any]) -> GtgenConfig:
     """Return the defaults, overridden by YAML file ``path`` and then by ``overrides``."""
     layers = [read_yaml(path)] if path is not None else []

@@ -131,6 +131,20 @@ def test_bad_datasets(dataset, tmp_path):
     assert p.returncode == 1 and "no samples" in p.stderr and "Traceback" not in p.stderr
     p = run_cli("train", dataset, "--preset", "huge", cwd=tmp_path)
     assert p.returncode == 1 and "preset 'huge' unknown" in p.stderr
+    # a dataset made by a gtgen whose trainer had other keys stays readable; an unknown key
+    # about the data itself is one line naming it
+    g = zarr.open_group(str(other), mode="r+")
+    g.attrs["version"] = zarr.open_group(str(dataset), mode="r").attrs["version"]
+    conf = dict(g.attrs["config"])
+    conf["train"] = {**conf["train"], "ema_decay": 0.99}
+    g.attrs["config"] = conf
+    assert len(ShardDataset(other, cfg.train)) > 0
+    conf["grids"] = {**conf["grids"], "tiles": 3}
+    g.attrs["config"] = conf
+    with pytest.raises(ConfigError, match="records a config this gtgen does not accept .*grids.tiles"):
+        ShardDataset(other, cfg.train)
+    p = run_cli("report", other, "-o", tmp_path / "rep", cwd=tmp_path)
+    assert p.returncode == 1 and "grids.tiles" in p.stderr and len(p.stderr.strip().splitlines()) == 1
 
 
 def test_filled_prior_and_nearest_baseline_by_hand():

@@ -153,10 +153,10 @@ class ShardWriter:
     def _coordinates(self, attrs: DatasetAttrs) -> None:
         """Write the dimension coordinates (``schema.COORDS``): cell centres of each grid,
         and the sample times."""
-        from gtgen.config import GtgenConfig
+        from gtgen.config import stored_config
         from gtgen.geometry import cell_centers
 
-        grids = GtgenConfig.model_validate(attrs.config).grids
+        grids = stored_config(attrs.config, "the dataset being written").grids
         t = self.root["meta/t_ns"][:] if self.n else np.zeros(0, np.int64)
         for s in COORDS:
             group, leaf = s.path.rsplit("/", 1)

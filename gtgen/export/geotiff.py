@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.config import RANGES, GtgenConfig
+from gtgen.config import RANGES, stored_config
 from gtgen.errors import GtgenError
 from gtgen.geometry import xy_to_index
 from gtgen.runtime.output import stage_output
@@ -215,7 +215,7 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -
     g, info = open_dataset(dataset)
     if info.n_samples == 0:
         raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
-    cfg = GtgenConfig.model_validate(info.attrs.config)
+    cfg = stored_config(info.attrs.config, f"dataset '{dataset}'")
     T = g["meta/T_crs_target"][:]
     drive = g["meta/drive"][:]
     t_ns = g["meta/t_ns"][:]

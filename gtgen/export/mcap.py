@@ -89,9 +89,9 @@ def export_mcap(dataset: Path, out: Path) -> McapExport:
         raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
     if out.suffix != ".mcap":
         raise GtgenError(f"output '{out}' must be a file ending in .mcap")
-    from gtgen.config import GtgenConfig
+    from gtgen.config import stored_config
 
-    cfg = GtgenConfig.model_validate(info.attrs.config)
+    cfg = stored_config(info.attrs.config, f"dataset '{dataset}'")
     cams = list(info.attrs.cameras)
     t_ns = g["meta/t_ns"][:]
     drive = g["meta/drive"][:]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from gtgen import codes
-from gtgen.config import RANGES, GtgenConfig
+from gtgen.config import RANGES, stored_config
 from gtgen.report.figures import figures, signal_figure
 from gtgen.report.labels import label_errors
 from gtgen.report.rejections import rejection_truth
@@ -61,7 +61,7 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40) -> R
     from gtgen.synth.truth import Truth
 
     truth = Truth.find(bag_paths)
-    cfg = GtgenConfig.model_validate(attrs.config)
+    cfg = stored_config(attrs.config, f"dataset '{dataset}'")
     if truth is not None and S:
         rep.truth = label_errors(g, cfg, truth, idx)
     if truth is not None:

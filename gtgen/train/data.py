@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from torch.utils.data import Dataset
 
 from gtgen import codes
-from gtgen.config import GtgenConfig, TrainConfig
+from gtgen.config import TrainConfig, stored_config
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
 from gtgen.storage.chunks import RangeReader
@@ -181,7 +181,7 @@ class ShardDataset(Dataset):
             raise TrainError(f"dataset '{path}' has no samples; nothing to train or evaluate on")
         self.path = path
         self.tc = tc
-        self.data_cfg = GtgenConfig.model_validate(info.attrs.config)
+        self.data_cfg = stored_config(info.attrs.config, f"dataset '{path}'")
         self.info = info
         idx = np.arange(info.n_samples)
         if split is not None:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from gtgen.config import GtgenConfig, TrainConfig, save_config
+from gtgen.config import GtgenConfig, TrainConfig, save_config, stored_config
 from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
 from gtgen.errors import ConfigError, TrainError
 from gtgen.runtime.output import atomic_output, lock, write_atomic
@@ -196,7 +196,7 @@ def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainCo
     from pydantic import ValidationError
 
     try:
-        return state, TrainConfig.model_validate(state["train"]), GtgenConfig.model_validate(state["data_config"])
+        return state, TrainConfig.model_validate(state["train"]), stored_config(state["data_config"], f"checkpoint '{path}'")
     except (KeyError, ValidationError) as err:
         first = err.errors()[0] if isinstance(err, ValidationError) else {"loc": (str(err),), "msg": "missing"}
         where = ".".join(str(x) for x in first["loc"])
