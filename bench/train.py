@@ -52,9 +52,10 @@ print(n / (time.perf_counter() - t))
 
 FILL = """
 import sys, time, numpy as np
+from pathlib import Path
 from gtgen.storage.stores import open_dataset
 from gtgen.train.data import filled, smoothed_min_z
-g, info = open_dataset(sys.argv[1])
+g, info = open_dataset(Path(sys.argv[1]))
 raw = g["inputs/raw_elevation_m"]
 grids = [smoothed_min_z(raw[k], 5) for k in range(0, info.n_samples, max(1, info.n_samples // 12))]
 t = [0.0, 0.0]
