@@ -116,8 +116,8 @@ def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
 
 
 def resample_bilinear(grid: NDArray, size: int) -> NDArray[np.float32]:
-    """Return the square grid (n, n) resampled to (size, size) over the same extent,
-    bilinear between cell centres (edge cells extended)."""
+    """Return the square grids (..., n, n) resampled to (..., size, size) over the same
+    extent, bilinear between cell centres (edge cells extended)."""
     return _bilinear_at(grid, (np.arange(size) + 0.5) * (grid.shape[-1] / size) - 0.5).astype(np.float32)
 
 
@@ -277,7 +277,7 @@ class ShardDataset(Dataset):
         # (smoothed min z filled everywhere, distance to the nearest cell with points)
         out["prior"] = torch.from_numpy(self._prior(raw, self._prior_win["short"]))
         if tc.micro_size > centre.shape[0]:  # finer than the points' grid: computed on it, then resampled
-            out["prior_micro"] = torch.from_numpy(np.stack([resample_bilinear(x, tc.micro_size) for x in self._prior(centre, self._prior_win["centre"])]))
+            out["prior_micro"] = torch.from_numpy(resample_bilinear(self._prior(centre, self._prior_win["centre"]), tc.micro_size))
         else:
             out["prior_micro"] = torch.from_numpy(self._prior(raw_m, self._prior_win["micro"]))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))
