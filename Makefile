@@ -13,6 +13,7 @@ demo: setup
 	bash scripts/demo.sh $(DEMO)
 
 test: setup
+	$(BIN)/ruff check gtgen pipelines tests bench scripts
 	$(BIN)/python -m pytest -n 2 -p no:cacheprovider tests
 
 bench: setup

@@ -7,14 +7,14 @@ from _common import drive, fresh_workspace, header, run_measured
 NAIVE = """
 import time, itertools, sys
 from pathlib import Path
-from gtgen.storage.stores import open_drive
+from gtgen.storage.drive import DriveStore
 from gtgen.config import load_config
 from gtgen.fuse.fusion import naive_fuse_range, fuse_range
-from gtgen.fuse.run import zarr_map_source, sample_grids, params
+from gtgen.fuse.run import map_source, sample_grids, params
 cfg = load_config()
-d = open_drive(Path(sys.argv[1]))
+d = DriveStore(Path(sys.argv[1]))
 g = cfg.grids.micro
-maps = zarr_map_source(d, "micro", g.resolution_m)
+maps = map_source(d, "micro", g.resolution_m)
 samples = sample_grids(d, "micro", g.size, g.resolution_m)
 n = int(sys.argv[2])
 sel = samples[len(samples) // 3 : len(samples) // 3 + n]
@@ -28,7 +28,8 @@ if __name__ == "__main__":
     d = drive(120)
     ws = fresh_workspace("ws_fuse")
     run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
-    import subprocess, sys
+    import subprocess
+    import sys
 
     p = subprocess.run([sys.executable, "-c", NAIVE, str(ws / "drive.zarr"), "6"], capture_output=True, text=True, check=True)
     naive_s, fast_s = map(float, p.stdout.split())

@@ -53,9 +53,10 @@ print(n / (time.perf_counter() - t))
 FILL = """
 import sys, time, numpy as np
 from pathlib import Path
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.dataset import DatasetStore
 from gtgen.train.data import filled, smoothed_min_z
-g, info = open_dataset(Path(sys.argv[1]))
+info = DatasetStore(Path(sys.argv[1]))
+g = info.group
 raw = g["inputs/raw_elevation_m"]
 grids = [smoothed_min_z(raw[k], 5) for k in range(0, info.n_samples, max(1, info.n_samples // 12))]
 t = [0.0, 0.0]
@@ -82,7 +83,8 @@ if __name__ == "__main__":
     steps = 40
     dt, rss = run_measured(["train", str(ws / "dataset.zarr"), "--preset", "tiny", "--steps", str(steps), "--run", str(run)])
     print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
-    import subprocess, sys
+    import subprocess
+    import sys
 
     for preset in ("tiny", "paper"):
         for workers in (0, 2):

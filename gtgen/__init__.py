@@ -17,9 +17,9 @@ __all__ = ["GtgenError", "ShardDataset", "__version__", "open_dataset"]
 
 
 def open_dataset(path: Any) -> Any:
-    """Open a dataset store: a :class:`gtgen.dataset.handle.Dataset` with its schema, splits,
+    """Open a dataset store: a :class:`gtgen.api.Dataset` with its schema, splits,
     an xarray view per group and a PyTorch Dataset (see that module)."""
-    from gtgen.dataset.handle import open_dataset as _open
+    from gtgen.api import open_dataset as _open
 
     return _open(path)
 

@@ -364,8 +364,10 @@ def load_config(path: Path | None = None, *overrides: dict[str, Any]) -> GtgenCo
 
 
 def save_config(cfg: GtgenConfig, path: Path) -> None:
-    """Write the resolved ``cfg`` as YAML to ``path``."""
-    path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    """Write the resolved ``cfg`` as YAML to ``path`` (atomically; the signature in its first line)."""
+    from gtgen.runtime.output import signature, write_atomic
+
+    write_atomic(path, f"# {signature()}: the resolved config\n" + yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
 
 
 def default_yaml() -> str:
@@ -390,7 +392,7 @@ def default_yaml() -> str:
                 lines.append(f"{pad}{dumped}" + (f"  # {desc}" if desc else ""))
 
     cfg = GtgenConfig()
-    for name, field in GtgenConfig.model_fields.items():
+    for name in GtgenConfig.model_fields:
         sub = getattr(cfg, name)
         lines.append(f"{name}:  # {(type(sub).__doc__ or '').strip().splitlines()[0]}")
         walk(type(sub), sub, 1)

@@ -54,3 +54,7 @@ class TrainError(GtgenError, ValueError):
 
 class LockedError(GtgenError, BlockingIOError):
     """Another gtgen command is writing (or reading) the same output."""
+
+
+class OutputExistsError(GtgenError, FileExistsError):
+    """An output path holds something gtgen did not write (pass --overwrite to replace it)."""

@@ -8,7 +8,8 @@ import numpy as np
 
 from gtgen.config import CAMERAS, RANGES
 from gtgen.errors import ConfigError
-from gtgen.storage.stores import open_dataset
+from gtgen.runtime.output import save_figure
+from gtgen.storage.dataset import DatasetStore
 
 REGION_COLORS = np.array([[0.85, 0.85, 0.85], [0.98, 0.59, 0.15], [0.59, 0.14, 0.57], [0.26, 0.43, 0.69]])
 
@@ -18,22 +19,23 @@ def forward_up(a: np.ndarray) -> np.ndarray:
     return a[::-1, ::-1]
 
 
-def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np.ndarray] | None = None) -> Path:
+def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np.ndarray] | None = None,
+                  overwrite: bool = False) -> Path:
     """Write a PNG of sample ``index``: images, and per range labels, X-Racer at t and DEM."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    g, info = open_dataset(dataset)
-    if not 0 <= index < info.n_samples:
-        raise ConfigError(f"--sample {index} out of range; the dataset has {info.n_samples} samples (0..{info.n_samples - 1})")
+    ds = DatasetStore(dataset)
+    if not 0 <= index < ds.n_samples:
+        raise ConfigError(f"--sample {index} out of range; the dataset has {ds.n_samples} samples (0..{ds.n_samples - 1})")
     cols = ["elevation", "risk", "confidence", "regions", "X-Racer elevation at t", "DEM (aligned)"]
     if prediction:
         cols += ["predicted elevation", "predicted risk"]
     fig = plt.figure(figsize=(3 * len(cols), 10.5))
     gs = fig.add_gridspec(3, len(cols))
-    imgs = g["inputs/images"][index]
+    imgs = ds.inputs("images")[index]
     step = max(1, len(cols) // 4)
     for c_i, cam in enumerate(CAMERAS):
         ax = fig.add_subplot(gs[0, c_i * step : (c_i + 1) * step])
@@ -41,16 +43,16 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
         ax.set_title(cam)
         ax.axis("off")
     for row, r in enumerate(RANGES, start=1):
-        el = g[f"labels/{r}/elevation_m"][index]
+        el = ds.grid("labels", r, "elevation_m")[index]
         vmin, vmax = np.nanpercentile(el, [2, 98]) if np.isfinite(el).any() else (-1, 1)
-        reg = g[f"labels/{r}/region"][index]
+        reg = ds.grid("labels", r, "region")[index]
         n = el.shape[0]
-        L = n * info.attrs.config["grids"][r]["resolution_m"] / 2
+        L = n * ds.config.grids.get(r).resolution_m / 2
         ext = (L, -L, -L, L)  # left edge is +y (left), top is +x (forward)
         panels = [
-            (el, "terrain", vmin, vmax), (g[f"labels/{r}/risk"][index], "magma", 0, 1),
-            (g[f"labels/{r}/confidence"][index], "viridis", 0, 1), (REGION_COLORS[reg], None, None, None),
-            (g[f"xracer/{r}/elevation_m"][index], "terrain", vmin, vmax), (g[f"dem/{r}/elevation_m"][index], "terrain", vmin, vmax),
+            (el, "terrain", vmin, vmax), (ds.grid("labels", r, "risk")[index], "magma", 0, 1),
+            (ds.grid("labels", r, "confidence")[index], "viridis", 0, 1), (REGION_COLORS[reg], None, None, None),
+            (ds.grid("xracer", r, "elevation_m")[index], "terrain", vmin, vmax), (ds.grid("dem", r, "elevation_m")[index], "terrain", vmin, vmax),
         ]
         if prediction:
             panels += [(prediction[f"{r}/elevation"], "terrain", vmin, vmax), (prediction[f"{r}/risk"], "magma", 0, 1)]
@@ -62,11 +64,10 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
             ax.tick_params(labelsize=7)
             if cmap is not None:
                 fig.colorbar(im, ax=ax, fraction=0.046)
-    t = g["meta/t_ns"][index]
-    fig.suptitle(f"{dataset.name} sample {index}  t={t / 1e9:.2f} s  fitness={g['meta/icp_fitness'][index]:.3f}  "
+    t = ds.meta("t_ns")[index]
+    fig.suptitle(f"{dataset.name} sample {index}  t={t / 1e9:.2f} s  fitness={ds.meta('icp_fitness')[index]:.3f}  "
                  "(forward up; regions: orange obs. past/current, purple obs. future, blue unobserved/DEM, grey none)")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=70)
+    save_figure(fig, out, overwrite, dpi=70)
     plt.close(fig)
     return out

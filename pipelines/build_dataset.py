@@ -25,12 +25,13 @@ from typing import Any
 from gtgen import __version__
 from gtgen.bag.reader import SUFFIXES, hash_bag
 from gtgen.config import GtgenConfig
+from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dataset.merge import merging
-from gtgen.dataset.run import run_dem_align
+from gtgen.dem.tiles import TileIndex, default_dem_dir
 from gtgen.errors import ConfigError, GtgenError, InputNotFoundError
 from gtgen.extract import run_extract
 from gtgen.fuse.run import run_fuse
-from gtgen.runtime.output import lock, write_atomic
+from gtgen.runtime.output import check_replace, lock, write_json
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
 
@@ -71,8 +72,6 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
     holds bags (or is a rosbag2 recording) is one drive; a folder of such folders is
     one drive per subfolder; a bag file alone is a drive named after it.
     """
-    import yaml
-
     drives: dict[str, list[Path]] = {}
 
     def add(name: str, bags: list[Path]) -> None:
@@ -84,12 +83,8 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
         if not src.exists():
             raise InputNotFoundError(f"source '{src}' does not exist")
         if src.is_file() and src.suffix in (".yaml", ".yml"):
-            data = yaml.safe_load(src.read_text()) or {}
-            entries = data.get("drives")
-            if not isinstance(entries, dict):
-                raise ConfigError(f"manifest '{src}' must have 'drives: {{name: [bag, ...]}}'")
-            for name, bags in entries.items():
-                add(str(name), [(src.parent / b).resolve() for b in bags])
+            for name, bags in _manifest(src).items():
+                add(name, bags)
         elif src.is_file():
             add(src.stem, [src.resolve()])
         elif (src / "metadata.yaml").is_file():
@@ -108,26 +103,45 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
     return drives
 
 
-def unit_hash(bags: list[Path], cfg_json: dict, dem_dir: Path, bag_sha256: list[str] | None = None) -> str:
-    """Return the hash of one drive unit's inputs (``bag_sha256``: the bags' own hashes,
-    computed here if not given)."""
+def _manifest(src: Path) -> dict[str, list[Path]]:
+    """Return {drive name: bags} of a manifest file, or raise ConfigError saying what is wrong."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(src.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"manifest '{src}' is not valid YAML: {err}".splitlines()[0]) from err
+    entries = data.get("drives") if isinstance(data, dict) else None
+    if not isinstance(entries, dict) or not all(isinstance(b, list) and b for b in entries.values()):
+        raise ConfigError(f"manifest '{src}' must hold 'drives: {{name: [bag, ...]}}' (a mapping of drive names to lists of bags)")
+    out = {}
+    for name, bags in entries.items():
+        paths = [(src.parent / str(b)).resolve() for b in bags]
+        missing = [str(p) for p in paths if not p.exists()]
+        if missing:
+            raise InputNotFoundError(f"manifest '{src}': drive {name!r} names bags that do not exist: {missing}")
+        out[str(name)] = paths
+    return out
+
+
+def unit_hash(bags: list[Path], cfg: GtgenConfig, dem_fingerprint: str, bag_sha256: list[str] | None = None) -> str:
+    """Return the hash of one drive unit's inputs: the bags' own hashes (``bag_sha256``,
+    computed here if not given), the resolved config, every file the DEM tiles read
+    (``TileIndex.fingerprint``) and gtgen's version."""
     h = hashlib.sha256()
-    for b, bh in zip(bags, bag_sha256 or [hash_bag(b) for b in bags]):
+    for bh in bag_sha256 or [hash_bag(b) for b in bags]:
         h.update(bh.encode())
-    h.update(json.dumps(cfg_json, sort_keys=True).encode())
-    for t in sorted(dem_dir.glob("*.tif")):
-        st = t.stat()
-        h.update(f"{t.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    h.update(json.dumps(cfg.model_dump(mode="json"), sort_keys=True).encode())
+    h.update(dem_fingerprint.encode())
     h.update(__version__.encode())
     return h.hexdigest()
 
 
-def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json: dict,
+def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg: GtgenConfig,
                   bag_sha256: list[str] | None = None, workers: int = 1) -> DriveResult:
     """Run extract, fuse and dem-align for one drive (a picklable task for any executor),
     each stage on ``workers`` processes; the bags are hashed while extract reads them
     unless ``bag_sha256`` gives the hashes."""
-    cfg = GtgenConfig.model_validate(cfg_json)
     folder = Path(work) / name
     folder.mkdir(parents=True, exist_ok=True)
     (folder / DONE).unlink(missing_ok=True)
@@ -151,7 +165,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg_json:
 
 
 def _mark_done(folder: Path, digest: str, res: DriveResult) -> None:
-    write_atomic(folder / DONE, json.dumps({"hash": digest, "result": asdict(res)}))
+    write_json(folder / DONE, {"hash": digest, "result": asdict(res)})
 
 
 def _already_done(folder: Path, digest: str) -> DriveResult | None:
@@ -167,14 +181,15 @@ def _already_done(folder: Path, digest: str) -> DriveResult | None:
 
 
 def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: GtgenConfig,
-                  workers: int = 2, scheduler: str | None = None) -> BuildResult:
+                  workers: int = 2, scheduler: str | None = None, overwrite: bool = False) -> BuildResult:
     """Build ``out/dataset.zarr`` from every drive in ``sources``; see the module docstring."""
     t0 = time.perf_counter()
     drives = find_drives(sources)
+    check_replace(out / "dataset.zarr", overwrite)
+    dems = _dems(drives, dem_dir, cfg)  # every drive's DEM checked before any work
     work = out / "drives"
-    work.mkdir(parents=True, exist_ok=True)
     with lock(out / "build"):
-        dems = {name: dem_dir or (Path(cfg.dem.dir) if cfg.dem.dir else bags[0].parent / "dem") for name, bags in drives.items()}
+        work.mkdir(parents=True, exist_ok=True)
         results, todo = _done_and_todo(drives, dems, work, cfg, workers, scheduler)
         # drives run largest bags first, so that no worker is left with a long drive at the
         # end, and the dataset holds them in that same order: each is merged as soon as it and
@@ -182,7 +197,7 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
         order = sorted(drives, key=lambda n: (-sum(_size(b) for b in drives[n]), n))
         rank = {n: i for i, n in enumerate(order)}
         todo.sort(key=lambda t: rank[t[0]])
-        with merging(out / "dataset.zarr", cfg) as merger:
+        with merging(out / "dataset.zarr", cfg, overwrite) as merger:
             merged = 0
 
             def merge_ready() -> None:
@@ -196,7 +211,7 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
             merge_ready()
             for res in _execute(todo, workers, scheduler):
                 if res.ok:
-                    _mark_done(work / res.name, unit_hash(drives[res.name], cfg.model_dump(mode="json"), dems[res.name], res.bag_sha256), res)
+                    _mark_done(work / res.name, unit_hash(drives[res.name], cfg, dems[res.name][1], res.bag_sha256), res)
                 results[res.name] = res
                 merge_ready()
             ordered = [results[n] for n in order]
@@ -206,22 +221,34 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
 
 
-def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, Path], work: Path, cfg: GtgenConfig, workers: int,
+def _dems(drives: dict[str, list[Path]], dem_dir: Path | None, cfg: GtgenConfig) -> dict[str, tuple[Path, str]]:
+    """Return each drive's DEM (``--dem``, else dem.dir, else dem/ beside its bags) and the
+    fingerprint of every file its tiles read; a DEM that does not exist or holds no tile is
+    an error before any drive runs."""
+    out, seen = {}, {}
+    for name, bags in drives.items():
+        src = dem_dir or default_dem_dir(cfg.dem.dir, bags)
+        if src not in seen:
+            seen[src] = TileIndex.build(src).fingerprint()
+        out[name] = (src, seen[src])
+    return out
+
+
+def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, tuple[Path, str]], work: Path, cfg: GtgenConfig, workers: int,
                    scheduler: str | None) -> tuple[dict[str, DriveResult], list[tuple]]:
     """Return the units already done with the same inputs, and the tasks of the others.
     With fewer drives than workers (one long drive, say) each drive's stages run on the
     spare workers themselves, so no core idles; a Dask task stays one process."""
-    cfg_json = cfg.model_dump(mode="json")
     done, todo = {}, []
     for name, bags in drives.items():
         hashes = None
         if (work / name / DONE).is_file():  # hash now only to compare; otherwise extract hashes as it reads
             hashes = [hash_bag(b) for b in bags]
-            res = _already_done(work / name, unit_hash(bags, cfg_json, dems[name], hashes))
+            res = _already_done(work / name, unit_hash(bags, cfg, dems[name][1], hashes))
             if res is not None:
                 done[name] = res
                 continue
-        todo.append((name, [str(b) for b in bags], str(dems[name]), str(work), cfg_json, hashes))
+        todo.append((name, [str(b) for b in bags], str(dems[name][0]), str(work), cfg, hashes))
     inner = 1 if scheduler else max(1, workers // max(len(todo), 1))
     return done, [(*t, inner) for t in todo]
 

@@ -25,9 +25,9 @@ def main() -> None:
     a = ap.parse_args()
 
     from gtgen.config import load_config
-    from gtgen.dataset.run import run_dem_align
+    from gtgen.dataset.dem_align import run_dem_align
     from gtgen.report.rejections import rejection_truth
-    from gtgen.storage.stores import open_dataset
+    from gtgen.storage.dataset import DatasetStore
     from gtgen.synth.truth import Truth
 
     ws = a.workspace / "gtgen_ws"
@@ -37,9 +37,9 @@ def main() -> None:
         cfg = load_config(a.config, {section: {name: float(value)}})
         out = a.workspace / "sweep" / f"{a.key}={value}" / "dataset.zarr"
         run_dem_align(ws / "drive.zarr", ws / "fused.zarr", a.workspace / "drive" / "dem", out, cfg, a.workers)
-        g, info = open_dataset(out)
-        truth = Truth.find([b.path for d in info.attrs.drives for b in d.bags])
-        r = rejection_truth(g, cfg, truth, info.attrs)
+        ds = DatasetStore(out)
+        truths = {d: t for d, e in enumerate(ds.info.drives) if (t := Truth.find([b.path for b in e.bags])) is not None}
+        r = rejection_truth(ds, cfg, truths)
         c = r["confusion"]
         print(f"{value:>28} | {c['kept']['good']:>9} | {c['kept']['bad']:>8} | {c['rejected']['good']:>13} | {c['rejected']['bad']:>12} | "
               f"{r['bad_rejected_pct']!s:>11}% | {r['good_kept_pct']!s:>8}% | {r['reasons']['bad']}")

@@ -18,7 +18,7 @@ def render(text: str) -> str:
     """Return ``text`` with every generated table block replaced by the code's version."""
     for name, specs in TABLES.items():
         pat = re.compile(rf"(<!-- BEGIN {name} -->\n)(?:.*?\n)?(<!-- END {name} -->)", re.S)
-        text = pat.sub(lambda m: m.group(1) + markdown_table(specs) + "\n" + m.group(2), text)
+        text = pat.sub(lambda m, specs=specs: m.group(1) + markdown_table(specs) + "\n" + m.group(2), text)
     return text
 
 

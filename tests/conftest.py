@@ -61,11 +61,22 @@ def fused_store(drive_store, cfg) -> Path:
 
 @pytest.fixture(scope="session")
 def dataset(fused_store, drive_store, cfg) -> Path:
-    from gtgen.dataset.run import run_dem_align
+    from gtgen.dataset.dem_align import run_dem_align
 
     out = drive_store.parent / "dataset.zarr"
     run_dem_align(drive_store, fused_store, None, out, cfg)
     return out
+
+
+def reseal(store: Path) -> None:
+    """Record a store a test edited in place as written whole (as a gtgen that wrote it so
+    would have), so that the edit, not the integrity check, is what the test meets."""
+    import shutil
+
+    from gtgen.storage.integrity import MANIFEST, write_manifest
+
+    shutil.rmtree(store / MANIFEST, ignore_errors=True)
+    write_manifest(store)
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600) -> subprocess.CompletedProcess:

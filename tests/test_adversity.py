@@ -15,8 +15,8 @@ from gtgen.config import SynthConfig
 from gtgen.dem.place import DrivePlacement, vegetation
 from gtgen.dem.tiles import DemMosaic, TileIndex
 from gtgen.geometry import quat_to_yaw, yaw_transform
-from gtgen.storage.chunks import ChunkFiles
-from gtgen.storage.stores import open_drive, open_fused
+from gtgen.storage.drive import DriveStore
+from gtgen.storage.fused import FusedStore
 from gtgen.synth.dem import altered_tiles, tile_lattice
 from gtgen.synth.drive import gnss_errors, gnss_outage
 from gtgen.synth.terrain import Terrain
@@ -91,7 +91,7 @@ def test_vegetation_blobs_are_found_and_noise_spikes_are_not():
 @pytest.fixture(scope="module")
 def placed(drive_dir, drive_store, fused_store, cfg):
     """A fresh placement of the test drive, and what it needs to place sample k."""
-    drive, fused = open_drive(drive_store), open_fused(fused_store)
+    drive, fused = DriveStore(drive_store), FusedStore(fused_store)
     index = TileIndex.build(drive_dir / "dem")
     with contextlib.ExitStack() as stack:
         dem = stack.enter_context(DemMosaic(index, index.working_crs(-120.65, 35.6)))
@@ -105,9 +105,9 @@ def _placement(cfg, placed, drive_dir):
 
 def _sample(placed, k):
     drive, fused, _ = placed
-    return (k, int(drive["samples/t_ns"][k]), drive["samples/pos_odom_m"][k], float(quat_to_yaw(drive["samples/quat_odom_xyzw"][k][None])[0]),
-            ChunkFiles(fused["fused/short/region"]).read(k), ChunkFiles(fused["fused/short/elevation_m"]).read(k).copy(),
-            float(drive["samples/distance_m"][k]))
+    s = drive.samples
+    return (k, int(s.t_ns[k]), s.pos_odom_m[k], float(quat_to_yaw(s.quat_odom_xyzw[k][None])[0]),
+            fused.grid("short", "region")[k], fused.grid("short", "elevation_m")[k].copy(), float(s.distance_m[k]))
 
 
 def test_decision_keeps_a_good_sample_and_rejects_constructed_bad_ones(placed, drive_dir, cfg):
@@ -190,16 +190,15 @@ def test_canopy_cells_are_left_out_of_the_icp_source(placed, drive_dir, cfg):
 
 def test_report_confusion_on_a_kind_drive_keeps_everything_good(dataset, cfg):
     from gtgen.report.rejections import rejection_truth
-    from gtgen.storage.stores import open_dataset
+    from gtgen.storage.dataset import DatasetStore
     from gtgen.synth.truth import Truth
 
-    g, info = open_dataset(dataset)
-    attrs = info.attrs
-    truth = Truth.find([b.path for b in attrs.drives[0].bags])
-    r = rejection_truth(g, cfg, truth, attrs)
+    ds = DatasetStore(dataset)
+    truth = Truth.find([b.path for b in ds.info.drives[0].bags])
+    r = rejection_truth(ds, cfg, {0: truth})
     c = r["confusion"]
-    assert c["kept"]["good"] == int(g["meta/t_ns"].shape[0]) and c["kept"]["bad"] == 0
+    assert c["kept"]["good"] == ds.n_samples and c["kept"]["bad"] == 0
     assert r["good_kept_pct"] == 100.0
     # a stricter definition of bad turns kept samples bad, and the table says so
     strict = small_config(report={"bad_horizontal_m": 0.001})
-    assert rejection_truth(g, strict, truth, attrs)["confusion"]["kept"]["bad"] > 0
+    assert rejection_truth(ds, strict, {0: truth})["confusion"]["kept"]["bad"] > 0

@@ -46,8 +46,8 @@ def test_dem_align_report_viz_through_the_cli(dataset, drive_store, tmp_path):
     assert p.returncode == 0 and (tmp_path / "s.png").stat().st_size > 10_000
     p = run_cli("viz", tmp_path / "ds.zarr", "--sample", "100000", "-o", tmp_path / "s.png")
     assert p.returncode == 1 and "out of range" in p.stderr
-    p = run_cli("dem-align", ws / "drive.zarr", "--dem", tmp_path / "nope", "-o", tmp_path / "x.zarr")
-    assert p.returncode == 1 and "DEM folder" in p.stderr and "Traceback" not in p.stderr
+    p = run_cli("dem-align", ws / "drive.zarr", "--dem", tmp_path / "nope", "-o", tmp_path / "x.zarr", "-c", "tests/data/small.yaml")
+    assert p.returncode == 1 and "DEM" in p.stderr and "does not exist" in p.stderr and "Traceback" not in p.stderr
 
 
 @pytest.mark.parametrize("args", [(), ("extract",), ("--bogus",), ("fuse", "--window", "abc"), ("nosuchcmd",)])

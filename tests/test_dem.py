@@ -9,10 +9,10 @@ import pytest
 import rasterio
 
 from conftest import REALDATA, needs_realdata
-from gtgen.dataset.run import run_dem_align
+from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dem.tiles import DemMosaic, TileIndex, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.dataset import DatasetStore
 
 
 @needs_realdata()
@@ -66,7 +66,7 @@ def test_mosaic_across_tile_borders_is_seamless(drive_dir, cfg):
 def test_alignment_and_inpainting_accuracy(dataset):
     from gtgen.report import build_report
 
-    g, info = open_dataset(dataset)
+    info = DatasetStore(dataset)
     assert info.n_samples >= 10
     rep = build_report(dataset, dataset.parent / "report")
     a = rep.truth["dem_alignment"]
@@ -76,7 +76,7 @@ def test_alignment_and_inpainting_accuracy(dataset):
     for r in ("micro", "short"):
         print(r, "unobs (DEM-filled) MAE", rep.truth[r]["unobs"]["elevation_mae_m"])
         assert rep.truth[r]["unobs"]["elevation_mae_m"] <= 0.25
-    geoid = info.attrs.drives[0].alignment["geoid_offset_m"]
+    geoid = info.info.drives[0].alignment["geoid_offset_m"]
     assert -36 < geoid < -30  # estimated, never assumed: the synth geoid is -33 m
 
 
@@ -96,7 +96,8 @@ def test_dem_of_the_wrong_place_is_rejected_for_every_sample(drive_dir, drive_st
     res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg)
     assert res.n_kept == 0
     assert set(res.rejected) <= {"low_fitness", "high_rmse", "no_dem", "too_few_points"} and sum(res.rejected.values()) == res.n_in
-    g, info = open_dataset(tmp_path / "ds.zarr")
+    info = DatasetStore(tmp_path / "ds.zarr")
+    g = info.group
     assert g["rejected/reason"].shape[0] == res.n_in
 
 
@@ -122,7 +123,8 @@ def test_missing_tile_leaves_unlabelled_cells_not_wrong_labels(drive_dir, drive_
     victim = sorted(dem.glob("*.tif"))[0]
     victim.unlink()
     res = run_dem_align(drive_store, fused_store, dem, tmp_path / "ds.zarr", cfg)
-    g, info = open_dataset(tmp_path / "ds.zarr")
+    info = DatasetStore(tmp_path / "ds.zarr")
+    g = info.group
     assert info.n_samples > 0
     for r in ("micro", "short"):
         reg = g[f"labels/{r}/region"][:]

@@ -12,10 +12,10 @@ import pytest
 import rasterio
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
-from gtgen.dataset.run import run_dem_align
+from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dem.tiles import DemMosaic, TileIndex
 from gtgen.errors import DemError
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.dataset import DatasetStore
 
 
 def _reprojected(src_dir: Path, dst_dir: Path, crs_of) -> Path:
@@ -84,8 +84,9 @@ def variants(drive_dir, tmp_path_factory):
 def test_the_same_terrain_in_other_crs_and_containers_gives_the_same_labels(variants, name, dataset, drive_store, fused_store, cfg, tmp_path):
     out = tmp_path / "ds.zarr"
     run_dem_align(drive_store, fused_store, variants[name], out, cfg)
-    ref, _ = open_dataset(dataset)
-    got, info = open_dataset(out)
+    ref = DatasetStore(dataset).group
+    info = DatasetStore(out)
+    got = info.group
     np.testing.assert_array_equal(got["meta/t_ns"][:], ref["meta/t_ns"][:])  # the same accepted samples
     for r in ("micro", "short"):
         reg, el = ref[f"labels/{r}/region"][:], ref[f"labels/{r}/elevation_m"][:]
@@ -97,7 +98,7 @@ def test_the_same_terrain_in_other_crs_and_containers_gives_the_same_labels(vari
         assert err.mean() <= 0.05 and np.quantile(err, 0.95) <= 0.10
         if name in ("VRT", "zip"):  # no resampling: the very same heights
             np.testing.assert_array_equal(el2, el)
-    crs = info.attrs.drives[0].crs
+    crs = info.info.drives[0].crs
     assert crs == {"EPSG:3857 (web mercator)": "EPSG:32610"}.get(name, "EPSG:26910")
 
 

@@ -37,11 +37,11 @@ def test_users_commands_verbatim_in_one_folder(tmp_path):
 
 def test_a_drive_split_into_two_bags_equals_one_bag(drive_dir, drive_store, cfg, tmp_path):
     from gtgen.extract import run_extract
-    from gtgen.storage.stores import open_drive
+    from gtgen.storage.drive import DriveStore
 
     a, b = split_mcap(drive_dir / "drive.mcap", tmp_path / "part_0.mcap", tmp_path / "part_1.mcap", 4.0)
     run_extract([a, b], tmp_path / "two.zarr", cfg)
-    x, y = open_drive(drive_store), open_drive(tmp_path / "two.zarr")
+    x, y = DriveStore(drive_store).group, DriveStore(tmp_path / "two.zarr").group
     for name in ("samples/t_ns", "poses/t_ns", "maps/short/t_ns", "samples/images"):
         np.testing.assert_array_equal(x[name][:], y[name][:], err_msg=name)
 
@@ -49,7 +49,7 @@ def test_a_drive_split_into_two_bags_equals_one_bag(drive_dir, drive_store, cfg,
 def test_dem_align_rerun_with_other_workers_gives_the_same_dataset(dataset, drive_store, fused_store, cfg, tmp_path):
     import zarr
 
-    from gtgen.dataset.run import run_dem_align
+    from gtgen.dataset.dem_align import run_dem_align
 
     run_dem_align(drive_store, fused_store, None, tmp_path / "again.zarr", cfg, workers=1)  # fixture: 2 workers
     a = zarr.open_group(str(dataset), mode="r")

@@ -48,14 +48,14 @@ def test_geotiff_mosaic_is_in_the_dataset_crs_and_each_pixel_is_the_nearest_samp
     import rasterio
     import zarr
 
-    from gtgen.storage.stores import open_dataset
+    from gtgen.storage.dataset import DatasetStore
 
     g = zarr.open_group(str(dataset), mode="r")
-    _, info = open_dataset(dataset)
+    info = DatasetStore(dataset)
     for r in ("micro", "short"):
         gr = cfg.grids.get(r)
         with rasterio.open(tifs / r / "elevation_m.tif") as src:
-            assert src.crs.to_string() == info.attrs.drives[0].crs
+            assert src.crs.to_string() == info.info.drives[0].crs
             assert src.res == (gr.resolution_m, gr.resolution_m)
             assert src.overviews(1) or max(src.shape) <= 256, "a COG has overviews down to its 256 px tiles"
             assert src.profile["tiled"]

@@ -11,13 +11,13 @@ import zarr
 
 from bagtools import rewrite_mcap
 from conftest import REALDATA, SMALL, needs_realdata, run_cli, small_config
-from gtgen.extract import run_extract
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
-from gtgen.runtime.output import partial_path
-from gtgen.storage.schema import DRIVE
-from gtgen.storage.stores import open_drive
 from gtgen.errors import BagError, DecodeError, GtgenError, InputNotFoundError, StoreError, TopicError
+from gtgen.extract import run_extract
+from gtgen.runtime.output import partial_path
+from gtgen.storage.drive import DriveStore
+from gtgen.storage.schema import DRIVE
 
 
 # -- real recordings ----------------------------------------------------------------------
@@ -78,7 +78,7 @@ def test_real_empty_gridmap_is_reported_not_crashed(tmp_path):
 
 # -- synthetic drives ------------------------------------------------------------------------
 def test_extract_store_contents(drive_store, cfg):
-    g = open_drive(drive_store)
+    g = DriveStore(drive_store).group
     S = g["samples/t_ns"].shape[0]
     assert S > 10
     assert g["samples/images"].shape == (S, 4, 30, 48, 3)
@@ -106,7 +106,7 @@ def test_extract_store_contents(drive_store, cfg):
 def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp_path):
     out = tmp_path / "from_bag.zarr"
     run_extract([drive_dir / "drive.bag"], out, cfg)
-    a, b = open_drive(drive_store), open_drive(out)
+    a, b = DriveStore(drive_store).group, DriveStore(out).group
     for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "samples/T_base_cam"):
         np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
     np.testing.assert_array_equal(a["maps/micro/elevation_m"][3], b["maps/micro/elevation_m"][3])
@@ -196,7 +196,7 @@ def test_out_of_order_and_duplicate_odometry(drive_dir, drive_store, cfg, tmp_pa
     bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "messy.mcap", edit)
     res = run_extract([bag], tmp_path / "m.zarr", cfg)
     assert any("duplicate" in w for w in res.warnings)
-    a, b = open_drive(drive_store), open_drive(tmp_path / "m.zarr")
+    a, b = DriveStore(drive_store).group, DriveStore(tmp_path / "m.zarr").group
     np.testing.assert_array_equal(a["poses/t_ns"][:], b["poses/t_ns"][:])
     np.testing.assert_array_equal(a["samples/t_ns"][:], b["samples/t_ns"][:])
 
@@ -215,7 +215,7 @@ def test_odometry_gap_rejects_samples_with_reason(drive_dir, cfg, tmp_path):
     res = run_extract([bag], tmp_path / "g.zarr", cfg)
     assert res.rejected.get("no_pose", 0) >= 1
     assert any("gaps" in w for w in res.warnings)
-    g = open_drive(tmp_path / "g.zarr")
+    g = DriveStore(tmp_path / "g.zarr").group
     t = g["samples/t_ns"][:]
     assert not np.any((t - t0 > 3.05e9) & (t - t0 < 4.45e9))
 
@@ -235,7 +235,7 @@ def test_all_nan_maps_are_not_used(drive_dir, cfg, tmp_path):
     res = run_extract([bag], tmp_path / "n.zarr", cfg)
     micro = next(s for s in res.topics if s["role"] == "map.micro")
     assert "all-NaN" in micro["first_error"]
-    g = open_drive(tmp_path / "n.zarr")
+    g = DriveStore(tmp_path / "n.zarr").group
     conf = g["maps/micro/confidence"]
     assert all(np.nanmax(conf[i]) > 0 for i in range(conf.shape[0]))
 
@@ -245,13 +245,13 @@ def test_failed_extract_leaves_no_store_a_later_stage_accepts(drive_dir, tmp_pat
     (partial_path(out)).mkdir()
     zarr.open_group(str(partial_path(out)), mode="w").attrs["store"] = "gtgen-drive"
     with pytest.raises(StoreError, match="did not finish"):
-        open_drive(out)
+        DriveStore(out)
     zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": DRIVE.version, "complete": False})
     with pytest.raises(StoreError, match="incomplete"):
-        open_drive(out)
+        DriveStore(out)
     zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": 0, "complete": True})
     with pytest.raises(StoreError, match="version 0"):
-        open_drive(out)
+        DriveStore(out)
 
 
 def test_cli_extract_summary_and_missing_file(drive_dir, tmp_path):
@@ -309,7 +309,7 @@ def test_voxel_maps_in_base_link_are_placed_by_the_pose_track(drive_dir, drive_s
     from gtgen.bag.poses import PoseTrack
     from gtgen.bag.reader import stamp_ns
 
-    g = open_drive(drive_store)
+    g = DriveStore(drive_store).group
     track = PoseTrack(g["poses/t_ns"][:], g["poses/pos_odom_m"][:], g["poses/quat_odom_xyzw"][:], 10**8)
 
     def to_base(topic, t, msg):
@@ -326,7 +326,7 @@ def test_voxel_maps_in_base_link_are_placed_by_the_pose_track(drive_dir, drive_s
     run_extract([bag], staged, cfg, workers=1, n_slices=3)
     run_extract([bag], ref, cfg, workers=1, n_slices=3, staging=False)
     _assert_same_arrays(ref, staged)
-    a, b = open_drive(staged), g
+    a, b = DriveStore(staged).group, g
     np.testing.assert_array_equal(a["voxel_maps/n_points"][:], b["voxel_maps/n_points"][:])
     np.testing.assert_allclose(a["voxel_maps/points_odom_m"][:], b["voxel_maps/points_odom_m"][:], atol=2e-3)
 
@@ -379,7 +379,7 @@ def test_a_bag_cut_short_gives_the_first_samples_of_the_whole_drive(drive_dir, d
     whole = (McapFile if name.endswith(".mcap") else Ros1File).open(full_path)
     first = min(c.offset + c.length for c in whole.chunks)
     data = full_path.read_bytes()
-    full = open_drive(drive_store if name.endswith(".mcap") else bag_store)
+    full = DriveStore(drive_store if name.endswith(".mcap") else bag_store).group
     ft = full["samples/t_ns"][:]
     tol = int(cfg.extract.pose_tolerance_s * 1e9)
     needed = np.max(np.column_stack([
@@ -395,7 +395,7 @@ def test_a_bag_cut_short_gives_the_first_samples_of_the_whole_drive(drive_dir, d
             t_last = bags.time_range()[1] - 1
         res = run_extract([bag], tmp_path / "cut.zarr", cfg, workers=1)
         assert any("cut short" in w for w in res.warnings)
-        g = open_drive(tmp_path / "cut.zarr")
+        g = DriveStore(tmp_path / "cut.zarr").group
         gt = g["samples/t_ns"][:]
         safe = np.nonzero(needed < t_last)[0]
         assert np.isin(ft[safe], gt).all(), (cut, len(safe), len(gt))

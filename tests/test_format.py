@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import zarr
 
-from gtgen.dataset.writer import ShardWriter, write_block
 from gtgen.storage import schema as sc
 from gtgen.storage.chunks import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
+from gtgen.storage.dataset import ShardWriter, write_block
 from gtgen.storage.specs import row_shape
 
 
@@ -87,11 +87,18 @@ def test_chunk_files_fall_back_to_zarr_for_other_layouts(tmp_path):
         assert not isinstance(f.encoded(0), Encoded)
 
 
+class _Flat(dict):
+    """A sample as write_block takes it, given by array path."""
+
+    def arrays(self) -> dict:
+        return self
+
+
 def _block(rng, S, micro, short, hw, src):
     """Samples of random values; the fused-like arrays as Encoded chunks of ``src``."""
     out = []
     for k in range(S):
-        s = {}
+        s = _Flat()
         for spec in sc.SAMPLE_ARRAYS:
             shape = row_shape(spec, {"n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]})
             dt = np.dtype(spec.dtype)

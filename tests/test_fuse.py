@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
+from gtgen.errors import StoreError
 from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
 from gtgen.fuse.run import run_fuse
-from gtgen.storage.stores import open_fused
-from gtgen.errors import StoreError
+from gtgen.storage.fused import FusedStore
 
 
 @pytest.mark.parametrize("res, size", [(0.2, 500), (0.8, 250)])
@@ -47,7 +47,7 @@ def test_empty_window_gives_unobserved_cells():
 
 
 def test_fused_store(fused_store, drive_store, cfg):
-    g = open_fused(fused_store)
+    g = FusedStore(fused_store).group
     S = g["samples/reason"].shape[0]
     reg = g["fused/micro/region"][S // 2]
     el = g["fused/micro/elevation_m"][S // 2]

@@ -5,8 +5,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gtgen.geometry import (
-    apply, cell_centers, invert, make_transform, matrix_to_quat, quat_to_matrix, quat_to_yaw,
-    rpy_to_quat, slerp, xy_to_index, yaw_transform,
+    apply,
+    cell_centers,
+    invert,
+    make_transform,
+    matrix_to_quat,
+    quat_to_matrix,
+    quat_to_yaw,
+    rpy_to_quat,
+    slerp,
+    xy_to_index,
+    yaw_transform,
 )
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)

@@ -16,8 +16,8 @@ import zarr
 
 from bagtools import split_mcap
 from conftest import SMALL, small_config
-from pipelines.build_dataset import build_dataset
 from gtgen.synth import run_synth
+from pipelines.build_dataset import build_dataset
 
 ARRAYS = ("labels/micro/elevation_m", "labels/short/region", "labels/short/risk", "meta/t_ns", "meta/drive",
           "meta/T_crs_target", "inputs/images", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")

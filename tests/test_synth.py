@@ -11,10 +11,10 @@ import pytest
 from conftest import run_cli, small_config
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
+from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
 from gtgen.synth import run_synth
 from gtgen.synth.run import load_world
 from gtgen.synth.sensors import camera_extrinsic, camera_intrinsic
-from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
 
 
 def _files(folder: Path) -> dict[str, bytes]:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import run_cli
+from conftest import reseal, run_cli
 from gtgen.config import GtgenConfig, load_config
 from gtgen.errors import ConfigError, StoreError, TrainError
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
@@ -112,7 +112,7 @@ def test_bad_datasets(dataset, tmp_path):
 
     import zarr
 
-    from gtgen.dataset.writer import ShardWriter
+    from gtgen.storage.dataset import ShardWriter
     from gtgen.storage.schema import DatasetAttrs
     from gtgen.train.data import ShardDataset
 
@@ -121,6 +121,7 @@ def test_bad_datasets(dataset, tmp_path):
     shutil.copytree(dataset, other)
     g = zarr.open_group(str(other), mode="r+")
     g.attrs["version"] = 99
+    reseal(other)
     with pytest.raises(StoreError, match="version 99"):
         ShardDataset(other, cfg.train)
     w = ShardWriter(tmp_path / "empty.zarr", 0, 8, 8, (4, 4))
@@ -138,9 +139,11 @@ def test_bad_datasets(dataset, tmp_path):
     conf = dict(g.attrs["config"])
     conf["train"] = {**conf["train"], "ema_decay": 0.99}
     g.attrs["config"] = conf
+    reseal(other)
     assert len(ShardDataset(other, cfg.train)) > 0
     conf["grids"] = {**conf["grids"], "tiles": 3}
     g.attrs["config"] = conf
+    reseal(other)
     with pytest.raises(ConfigError, match="records a config this gtgen does not accept .*grids.tiles"):
         ShardDataset(other, cfg.train)
     p = run_cli("report", other, "-o", tmp_path / "rep", cwd=tmp_path)
@@ -278,6 +281,7 @@ def test_bad_training_input_one_line(dataset, tmp_path):
     shutil.copytree(dataset, only_train)
     g = zarr.open_group(str(only_train), mode="r+")
     g["meta/split"][:] = 0
+    reseal(only_train)
     p = run_cli("eval", only_train, "--ckpt", tmp_path / "run" / "ckpt.pt", cwd=tmp_path)
     assert p.returncode == 1 and "no 'val' samples" in p.stderr and "--split all" in p.stderr and "Traceback" not in p.stderr
     # an old checkpoint format
@@ -354,7 +358,7 @@ def test_micro_prior_finer_than_the_points_grid_follows_the_fine_oracle(dataset)
 
     cfg = load_config(None, SMALL_TRAIN)
     ds = ShardDataset(dataset, cfg.train)
-    n_s = ds.info.short
+    n_s = ds.store.size("short")
     crop = n_s - 2 * (n_s // 4)
     fine = load_config(None, SMALL_TRAIN, {"train": {"micro_size": 4 * crop}})
     ds = ShardDataset(dataset, fine.train)
@@ -363,7 +367,7 @@ def test_micro_prior_finer_than_the_points_grid_follows_the_fine_oracle(dataset)
         got = ds[i]["prior_micro"].numpy()
         assert got.shape == (2, 4 * crop, 4 * crop) and np.isfinite(got).all()
         # oracle: the prior computed on the raw grid's centre upsampled to the model's cells
-        raw = ds._group()["inputs/raw_elevation_m"][int(ds.indices[i])][n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]
+        raw = ds.store.inputs("raw_elevation_m")[int(ds.indices[i])][n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]
         up = raw[np.ix_(nearest_index(crop, 4 * crop), nearest_index(crop, 4 * crop))]
         oracle = ds._prior(up, ds._prior_win["micro"])
         assert np.mean(np.abs(got[0] - oracle[0])) * clip < 0.03  # metres (6 mm on the test drive)

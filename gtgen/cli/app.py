@@ -29,6 +29,7 @@ app = typer.Typer(
 
 WORKSPACE = Path("gtgen_ws")
 ConfigOpt = typer.Option(None, "--config", "-c", help="partial YAML over the defaults in configs/")
+OverwriteOpt = typer.Option(False, "--overwrite", help="replace an existing output even if gtgen did not write it")
 
 
 def console():
@@ -88,14 +89,23 @@ def _root(
 
 
 
+def _fail(message: str) -> None:
+    """Print one error line and exit 1. zarr's event loop may hold reads that an error cut
+    short; their teardown at exit is not the user's business, so it stays quiet."""
+    import warnings
+
+    typer.echo(f"error: {message}", err=True)
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.filterwarnings("ignore", message="coroutine .* was never awaited")
+    sys.exit(1)
+
+
 def main() -> None:
     """Run the CLI: usage errors print the usage and exit 2 (click's standalone mode);
     gtgen errors and OS errors (a full disk, a permission) print one line and exit 1."""
     try:
         app(prog_name="gtgen")
     except GtgenError as err:
-        typer.echo(f"error: {err}", err=True)
-        sys.exit(1)
+        _fail(str(err))
     except OSError as err:
-        typer.echo(f"error: {err.strerror or err}" + (f": '{err.filename}'" if err.filename else ""), err=True)
-        sys.exit(1)
+        _fail(f"{err.strerror or err}" + (f": '{err.filename}'" if err.filename else ""))

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, app, table
+from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, table
 
 export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown",
                      help="Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.")
@@ -28,6 +28,7 @@ def geotiff(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
     out: Path = typer.Option(Path("export/geotiff"), "-o", "--out", help="folder to write"),
     samples: Optional[str] = typer.Option(None, "--samples", help="instead of mosaics, one raster set per listed sample, e.g. 3,7"),
+    overwrite: bool = OverwriteOpt,
 ) -> None:
     """Write north-up Cloud-Optimized GeoTIFFs in the dataset's CRS: per drive and range the
     mosaics of the labels (elevation in the DEM's datum, risk, region, count, last
@@ -40,7 +41,7 @@ def geotiff(
     """
     from gtgen.export import export_geotiff
 
-    res = export_geotiff(dataset, out, _samples(samples))
+    res = export_geotiff(dataset, out, _samples(samples), overwrite=overwrite)
     table("gtgen export geotiff", [("out", res.out), ("samples", res.samples), ("files", len(res.files)),
                                    ("e.g.", res.files[0] if res.files else "-")])
 
@@ -49,6 +50,7 @@ def geotiff(
 def mcap(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
     out: Path = typer.Option(Path("export/dataset.mcap"), "-o", "--out", help=".mcap file to write"),
+    overwrite: bool = OverwriteOpt,
 ) -> None:
     """Write one ROS 2 MCAP that Foxglove plays: per sample the label and X-Racer grids
     (GridMap and foxglove Grid), TF, the four images and the voxel points, at the sample
@@ -60,6 +62,6 @@ def mcap(
     """
     from gtgen.export import export_mcap
 
-    res = export_mcap(dataset, out)
+    res = export_mcap(dataset, out, overwrite=overwrite)
     rows = [("out", res.out), ("samples", res.samples)] + [(f"  {k}", v) for k, v in res.counts.items()]
     table("gtgen export mcap", rows)

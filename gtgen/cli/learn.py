@@ -92,7 +92,6 @@ def eval_cmd(
         gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'            # mean ± spread over the seeds
         gtgen eval datasets/test.zarr --ckpt runs/paper/ckpt.pt --split all --viz 3
     """
-    import json
 
     from rich.table import Table
 
@@ -121,7 +120,9 @@ def eval_cmd(
             t.add_row(EVAL_ROWS[m], *(_cell(res, ("risk", r, m, k)) for k in ("mse", "precision", "recall", "f1")), fmt(tab["coverage_pct"], True))
         con.print(t)
     out = out or ckpts[0].parent / "eval.json"
-    out.write_text(json.dumps(res, indent=1))
+    from gtgen.runtime.output import write_json
+
+    write_json(out, res, indent=1)
     rows: list[tuple[str, Any]] = [("consistency MAE", f"{_cell(res, ('consistency_mae_m',))} m"), ("metrics", out)]
     if viz is not None:
         from gtgen.train.trainer import predict_sample

@@ -7,7 +7,7 @@ from typing import Any, Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, ConfigOpt, app, console, load, table
+from gtgen.cli.app import WORKSPACE, ConfigOpt, OverwriteOpt, app, console, load, table
 from gtgen.errors import GtgenError
 
 
@@ -58,6 +58,7 @@ def extract(
     bags: list[Path] = typer.Argument(..., help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
     out: Path = typer.Option(WORKSPACE / "drive.zarr", "-o", "--out", help="drive store to write"),
     workers: int = typer.Option(2, min=1, help="processes reading the bags (record-time slices)"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Read a drive's bags into a per-drive store: poses, GNSS, maps, images, voxel maps.
@@ -71,8 +72,7 @@ def extract(
     cfg = load(config)
     from gtgen.extract import run_extract
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    res = run_extract(bags, out, cfg, workers=workers)
+    res = run_extract(bags, out, cfg, workers=workers, overwrite=overwrite)
     from rich.table import Table
 
     t = Table(title="gtgen extract: topics")
@@ -104,7 +104,8 @@ def fuse(
     window: Optional[float] = typer.Option(None, "--window", help="future window [s] [default from config: 60]"),
     past: Optional[float] = typer.Option(None, "--past", help="past window [s] [default from config: 0]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="fused store [default: fused.zarr beside DRIVE]"),
-    workers: int = typer.Option(2, help="processes (one per range)"),
+    workers: int = typer.Option(2, min=1, help="processes (jobs split by range and by fuse.chunk_samples samples)"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Hindsight-fuse each sample's maps: elevation, confidence, risk, regions, X-Racer at t.
@@ -126,7 +127,7 @@ def fuse(
     cfg = load(config, {"fuse": over})
     from gtgen.fuse.run import run_fuse
 
-    res = run_fuse(drive, out or drive.parent / "fused.zarr", cfg, workers=workers)
+    res = run_fuse(drive, out or drive.parent / "fused.zarr", cfg, workers=workers, overwrite=overwrite)
     rows: list[tuple[str, Any]] = [("store", res.store), ("samples", res.n_samples), ("fused", res.n_fused)]
     rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
     for r, cov in res.coverage.items():
@@ -140,6 +141,7 @@ def dem_align(
     fused: Optional[Path] = typer.Option(None, "--fused", help="fused store [default: fused.zarr beside DRIVE]"),
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Place the DEM by GNSS, refine per sample by ICP, reject misfits, inpaint, write shards.
@@ -150,9 +152,10 @@ def dem_align(
         gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
     """
     cfg = load(config)
-    from gtgen.dataset.run import run_dem_align
+    from gtgen.dataset.dem_align import run_dem_align
 
-    res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg)
+    res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg,
+                        overwrite=overwrite)
     import numpy as np
 
     f = np.asarray(res.fitness) if res.fitness else None
@@ -181,6 +184,7 @@ def build(
     out: Path = typer.Option(Path("gtgen_build"), "-o", "--out", help="output folder (dataset.zarr + drives/)"),
     workers: int = typer.Option(2, help="local worker processes"),
     scheduler: Optional[str] = typer.Option(None, help="dask.distributed scheduler address (e.g. tcp://host:8786)"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Build one dataset from many drives (extract -> fuse -> dem-align each), resumable.
@@ -193,7 +197,7 @@ def build(
     from pipelines.build_dataset import build_dataset, summary_rows
 
     cfg = load(config)
-    res = build_dataset(sources, dem, out, cfg, workers=workers, scheduler=scheduler)
+    res = build_dataset(sources, dem, out, cfg, workers=workers, scheduler=scheduler, overwrite=overwrite)
     table("gtgen build", summary_rows(res))
     if any(not r.ok for r in res.drives):
         raise typer.Exit(code=2)

@@ -7,13 +7,14 @@ from typing import Any, Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, app, table
+from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, table
 
 
 @app.command()
 def report(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="folder for report.json and PNGs [default: report/ beside the dataset's workspace]"),
+    overwrite: bool = OverwriteOpt,
 ) -> None:
     """Print a dataset card (kept/rejected, coverage, ICP fitness) and write QA figures.
 
@@ -28,7 +29,7 @@ def report(
     from gtgen.report import build_report
 
     out = out or Path("report")
-    rep = build_report(dataset, out)
+    rep = build_report(dataset, out, overwrite=overwrite)
     c = rep.card
     rows: list[tuple[str, Any]] = [("dataset", c["dataset"]), ("samples kept", c["samples_kept"])]
     if c.get("samples_kept_by_odometry"):
@@ -74,6 +75,7 @@ def viz(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
     sample: int = typer.Option(0, "--sample", "-n", help="sample index"),
     out: Path = typer.Option(Path("sample.png"), "-o", "--out", help="PNG to write"),
+    overwrite: bool = OverwriteOpt,
 ) -> None:
     """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
 
@@ -83,5 +85,32 @@ def viz(
     """
     from gtgen.viz import render_sample
 
-    p = render_sample(dataset, sample, out)
+    p = render_sample(dataset, sample, out, overwrite=overwrite)
     table("gtgen viz", [("figure", p)])
+
+
+@app.command()
+def verify(
+    store: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="a store gtgen wrote: drive, fused or dataset"),
+) -> None:
+    """Check a store whole: every chunk and shard file it was written with is there with its
+    size, metadata unchanged, every chunk decodes (checksums). Exit code 1 if damaged.
+
+    **Examples**
+
+        gtgen verify
+        gtgen verify gtgen_ws/drive.zarr
+    """
+    from gtgen.errors import GtgenError
+    from gtgen.storage.stores import verify_store
+
+    fmt, n, problems = verify_store(store)
+    rows: list[tuple[str, Any]] = [("store", store), ("kind", fmt.kind), ("files checked", n)]
+    rows += [("problem", p) for p in problems[:20]]
+    if len(problems) > 20:
+        rows.append(("", f"... and {len(problems) - 20} more"))
+    rows.append(("verdict", "whole" if not problems else f"DAMAGED ({len(problems)} problems)"))
+    table("gtgen verify", rows)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise GtgenError(f"store '{store}' is damaged: {problems[0]}{more}; rebuild it with '{fmt.made_by}'")

@@ -7,13 +7,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from gtgen.config import GtgenConfig
-from gtgen.dataset.run import dataset_attrs
-from gtgen.dataset.split import split_counts
-from gtgen.dataset.writer import ShardWriter
+from gtgen.dataset.dem_align import dataset_attrs
 from gtgen.errors import GtgenError
 from gtgen.runtime.output import atomic_output
+from gtgen.storage.dataset import DatasetStore, ShardWriter
 from gtgen.storage.schema import DatasetAttrs, DriveEntry
-from gtgen.storage.stores import open_dataset
 
 
 class DatasetMerger:
@@ -30,27 +28,26 @@ class DatasetMerger:
 
     def add(self, name: str, dataset: Path) -> int:
         """Append the samples of the dataset at ``dataset`` as drive ``name``; return how many."""
-        g, info = open_dataset(dataset)
+        src = DatasetStore(dataset)
         if self.writer is None:
-            W, H = info.attrs.image_size
+            W, H = src.info.image_size
             self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
-            self._first = info.attrs
-        n = self.writer.append_dataset(g, dataset, len(self.drives), f"build: merging {name}")
-        self.drives += [d.model_copy(update={"name": name}) for d in info.attrs.drives]
+            self._first = src.info
+        n = self.writer.append_dataset(src, len(self.drives), f"build: merging {name}")
+        self.drives += [d.model_copy(update={"name": name}) for d in src.info.drives]
         return n
 
     def finish(self, provenance: dict | None = None) -> tuple[int, dict[str, int]]:
         """Write the merged dataset's attributes; return (samples, split counts)."""
         if self.writer is None or self._first is None:
             raise GtgenError("no drive to merge: every drive failed")
-        first = {"image_size": self._first.image_size, "cameras": self._first.cameras}
-        n = self.writer.close(dataset_attrs(self.cfg, self.drives, first, provenance))
-        return n, split_counts(self.writer.root["meta/split"][:]) if n else {}
+        n = self.writer.close(dataset_attrs(self.cfg, self.drives, self._first.image_size, self._first.cameras, provenance))
+        return n, self.writer.split_counts()
 
 
 @contextlib.contextmanager
-def merging(path: Path, cfg: GtgenConfig) -> Iterator[DatasetMerger]:
+def merging(path: Path, cfg: GtgenConfig, overwrite: bool = False) -> Iterator[DatasetMerger]:
     """Yield a merger whose dataset appears at ``path`` only when the block succeeds (call
     ``finish`` inside it). Use inside a held lock of ``path``."""
-    with atomic_output(path) as tmp:
+    with atomic_output(path, overwrite) as tmp:
         yield DatasetMerger(tmp, cfg)

@@ -8,7 +8,6 @@ UTM grid convergence and any odometry heading offset end up in the yaw.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +15,7 @@ from numpy.typing import NDArray
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
 from gtgen.errors import AlignmentError
+from gtgen.storage.drive import Fixes
 
 
 @dataclass(frozen=True)
@@ -75,28 +75,22 @@ def fit_planar(odom_xyz: NDArray, gnss_enu: NDArray, var_h: NDArray, outlier_m: 
     return PlanarFit(yaw, float(t[0]), float(t[1]), dz, float(np.sqrt(np.mean(r[inl] ** 2))), int(inl.sum()), int((~inl).sum()))
 
 
-def gnss_fit(cfg: GtgenConfig, drive: Any, track: PoseTrack, crs: str) -> PlanarFit:
-    """Return the fit of a drive store's odometry to its GNSS fixes projected into ``crs``."""
+def gnss_fit(cfg: GtgenConfig, fixes: Fixes, track: PoseTrack, crs: str) -> PlanarFit:
+    """Return the fit of a drive's odometry to its GNSS ``fixes`` projected into ``crs``."""
     from pyproj import Transformer
 
-    t = drive["gnss/t_ns"][:]
-    if len(t) == 0:
+    if len(fixes.t_ns) == 0:
         raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
-    lat, lon, alt = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/alt_m"][:]
-    status = drive["gnss/status"][:]
-    var = drive["gnss/var_enu_m2"][:]
-    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
-    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
-    pos, _ = track.interpolate(t, strict=False)
-    enu = np.column_stack([E, N, alt])
-    enu[~ok] = np.nan
-    return fit_planar(pos, enu, var[:, :2].mean(axis=1), cfg.dem.gnss_outlier_m, cfg.dem.min_gnss_fixes)
+    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(fixes.lon_deg, fixes.lat_deg)
+    pos, _ = track.interpolate(fixes.t_ns, strict=False)
+    enu = np.column_stack([E, N, fixes.alt_m])
+    enu[~fixes.usable] = np.nan
+    return fit_planar(pos, enu, fixes.var_enu_m2[:, :2].mean(axis=1), cfg.dem.gnss_outlier_m, cfg.dem.min_gnss_fixes)
 
 
-def gnss_lonlat(cfg: GtgenConfig, drive: Any) -> tuple[float, float]:
-    """Return the median (lon, lat) [deg] of a drive store's usable GNSS fixes."""
-    lat, lon, status = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/status"][:]
-    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon)
+def gnss_lonlat(cfg: GtgenConfig, fixes: Fixes) -> tuple[float, float]:
+    """Return the median (lon, lat) [deg] of a drive's usable GNSS fixes."""
+    ok = fixes.usable
     if not ok.any():
         raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
-    return float(np.median(lon[ok])), float(np.median(lat[ok]))
+    return float(np.median(fixes.lon_deg[ok])), float(np.median(fixes.lat_deg[ok]))

@@ -69,7 +69,7 @@ def icp_4dof(
     if init is not None:
         x = np.array([np.arctan2(init[1, 0], init[0, 0]), init[0, 3], init[1, 3], init[2, 3]])
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the count of iterations run is read after the loop
         T = yaw_transform(x[1], x[2], x[3], x[0])
         p = source @ T[:3, :3].T + T[:3, 3]
         idx, d = _query(nns, p)

@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,9 +19,11 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import PlanarFit, gnss_fit
 from gtgen.dem.icp import IcpResult, icp_4dof
-from gtgen.dem.tiles import DemMosaic, sample_bilinear
+from gtgen.dem.tiles import DemSource, sample_bilinear
 from gtgen.errors import DemError
-from gtgen.geometry import grid_xy, invert, quat_to_yaw, yaw_transform
+from gtgen.geometry import grid_xy, invert, yaw_transform
+from gtgen.storage.drive import DriveSamples, DriveStore, Fixes
+from gtgen.storage.fused import FusedStore
 
 MIN_ICP_POINTS = 100
 COARSE = 3.0  # correspondence distance of the first pass from a drifted prior, in icp_max_distance_m
@@ -30,7 +31,7 @@ MIN_SIDE_CELLS = 800  # observed cells on each side of a tile border before the 
 MIN_BORDER_FITS = 3  # fits of a border before its offset is trusted
 
 
-def dem_patch(dem: DemMosaic, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
+def dem_patch(dem: DemSource, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
     """Return DEM heights in the target frame at target cells (X, Y) (NaN where no DEM)."""
     R, t = T_crs_target[:3, :3], T_crs_target[:3, 3]
     E = R[0, 0] * X + R[0, 1] * Y + t[0]
@@ -45,30 +46,29 @@ def _normals(Z: NDArray, res: float) -> NDArray:
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def _check_overlap(dem: DemMosaic, fit: PlanarFit, track: PoseTrack, dem_dir: Path) -> None:
+def _check_overlap(dem: DemSource, fit: PlanarFit, track: PoseTrack, dem_dir: Path) -> None:
     en = fit.apply_xy(track.pos[:, :2])
     l, b, r, t = dem.bounds()
     inside = (en[:, 0] > l) & (en[:, 0] < r) & (en[:, 1] > b) & (en[:, 1] < t)
     if not inside.any():
         raise DemError(
-            f"DEM folder '{dem_dir}' does not cover the drive: drive spans E {en[:, 0].min():.0f}..{en[:, 0].max():.0f}, "
+            f"DEM '{dem_dir}' does not cover the drive: drive spans E {en[:, 0].min():.0f}..{en[:, 0].max():.0f}, "
             f"N {en[:, 1].min():.0f}..{en[:, 1].max():.0f} in {dem.crs}; tiles span E {l:.0f}..{r:.0f}, N {b:.0f}..{t:.0f}"
         )
 
 
-def _dz_against_dem(dem: DemMosaic, fit: PlanarFit, X: NDArray, Y: NDArray, drive: Any, fused: Any, n: int = 24) -> float:
+def _dz_against_dem(dem: DemSource, fit: PlanarFit, X: NDArray, Y: NDArray, samples: DriveSamples, fused: FusedStore,
+                    n: int = 24) -> float:
     """Return the median DEM height minus odom height over observed short cells of a few samples."""
-    S = fused["fused/short/region"].shape[0]
-    pos = drive["samples/pos_odom_m"][:]
-    yaw = quat_to_yaw(drive["samples/quat_odom_xyzw"][:])
+    S = len(samples)
+    region, elev = fused.grid("short", "region"), fused.grid("short", "elevation_m")
     diffs = []
     for k in np.unique(np.linspace(0, S - 1, min(n, S)).astype(int)):
-        reg = fused["fused/short/region"][k]
-        el = fused["fused/short/elevation_m"][k]
+        reg, el = region[k], elev[k]
         obs = codes.observed(reg)
         if not obs.any():
             continue
-        T = yaw_transform(fit.tx, fit.ty, 0.0, fit.yaw) @ yaw_transform(*pos[k], yaw[k])
+        T = yaw_transform(fit.tx, fit.ty, 0.0, fit.yaw) @ yaw_transform(*samples.pos_odom_m[k], samples.yaw_odom_rad[k])
         d = (dem_patch(dem, T, X, Y) - el)[obs]  # both relative to the base z
         diffs.append(d[np.isfinite(d)])
     d = np.concatenate(diffs) if diffs else np.zeros(0)
@@ -103,7 +103,7 @@ def vegetation(d: NDArray, mask: NDArray, vegetation_m: float) -> NDArray[np.boo
 class DrivePlacement:
     """A drive's placement in the DEM's CRS, refined sample by sample (see ``place``)."""
 
-    def __init__(self, cfg: GtgenConfig, dem: DemMosaic, fit: PlanarFit, dz_dem: float, gnss: tuple[NDArray, NDArray]) -> None:
+    def __init__(self, cfg: GtgenConfig, dem: DemSource, fit: PlanarFit, dz_dem: float, gnss: tuple[NDArray, NDArray]) -> None:
         self.cfg, self.dem, self.fit, self.dz_dem = cfg, dem, fit, dz_dem
         gs = cfg.grids.short
         self.X, self.Y = grid_xy(gs.size, gs.resolution_m)
@@ -111,30 +111,27 @@ class DrivePlacement:
         self.chained = False  # the prior is a kept sample's placement (else the GNSS fit's)
         self.kept_at_m = 0.0  # odometry distance of the last kept sample
         self.gnss_t, self.gnss_xy = gnss  # (t_ns, (odom x, y, CRS E, N)) of the usable fixes
-        n = len(dem.index.tiles)
+        n = len(dem.tile_names)
         self.tile_cells, self.tile_bad = np.zeros(n, np.int64), np.zeros(n, np.int64)
         self.borders: dict[tuple[int, int], list[NDArray]] = {}  # (tile a, tile b): offsets of b from a, per fit
 
     @classmethod
-    def of_drive(cls, cfg: GtgenConfig, drive: Any, fused: Any, dem: DemMosaic, dem_dir: Path) -> DrivePlacement:
+    def of_drive(cls, cfg: GtgenConfig, drive: DriveStore, fused: FusedStore, dem: DemSource, dem_dir: Path) -> DrivePlacement:
         """Fit the drive's odometry to GNSS in the working CRS, check that the DEM covers it,
         and estimate the odom -> DEM vertical offset."""
-        track = PoseTrack(drive["poses/t_ns"][:], drive["poses/pos_odom_m"][:], drive["poses/quat_odom_xyzw"][:],
-                          int(cfg.extract.pose_tolerance_s * 1e9))
-        fit = gnss_fit(cfg, drive, track, dem.crs)
+        p = drive.poses()
+        track = PoseTrack(p.t_ns, p.pos_odom_m, p.quat_odom_xyzw, int(cfg.extract.pose_tolerance_s * 1e9))
+        fixes = drive.gnss()
+        fit = gnss_fit(cfg, fixes, track, dem.crs)
         _check_overlap(dem, fit, track, dem_dir)
         gs = cfg.grids.short
-        dz = _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive, fused)
-        return cls(cfg, dem, fit, dz, gnss_fixes(cfg, drive, track, dem.crs))
+        dz = _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive.samples, fused)
+        return cls(cfg, dem, fit, dz, gnss_fixes(fixes, track, dem.crs))
 
     def without(self, tiles: frozenset[int]) -> DrivePlacement:
         """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
         not read ``tiles``."""
-        from gtgen.dem.tiles import DemMosaic
-
-        self.dem.close()
-        return DrivePlacement(self.cfg, DemMosaic(self.dem.index, self.dem.crs, self.dem.exclude | tiles), self.fit,
-                              self.dz_dem, (self.gnss_t, self.gnss_xy))
+        return DrivePlacement(self.cfg, self.dem.without(tiles), self.fit, self.dz_dem, (self.gnss_t, self.gnss_xy))
 
     @property
     def geoid_offset_m(self) -> float:
@@ -306,7 +303,7 @@ class DrivePlacement:
         # a misplaced tile mismatches most of its borders; of a border alone, the side the
         # placements (anchored on the tiles driven before) had to move more for
         bad = {i for i in off if off[i] > ok[i] and off[i] > 1}
-        for (a, b), fits in self.borders.items():
+        for a, b in self.borders:
             if off[a] == 1 and off[b] == 1 and ok[a] == ok[b] == 0 and (a, a, b) in pull:
                 bad.add(a if pull[(a, a, b)] > pull[(b, a, b)] else b)
         return frozenset(out | bad)
@@ -319,13 +316,11 @@ class DrivePlacement:
 
 
 
-def gnss_fixes(cfg: GtgenConfig, drive: Any, track: PoseTrack, crs: str) -> tuple[NDArray, NDArray]:
+def gnss_fixes(fixes: Fixes, track: PoseTrack, crs: str) -> tuple[NDArray, NDArray]:
     """Return the usable fixes of a drive: stamps (n,), and (odom x, y, CRS E, N) (n, 4)."""
     from pyproj import Transformer
 
-    t = drive["gnss/t_ns"][:]
-    lat, lon, alt, status = drive["gnss/lat_deg"][:], drive["gnss/lon_deg"][:], drive["gnss/alt_m"][:], drive["gnss/status"][:]
-    ok = (status >= 0) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt) & track.covered(t)
-    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon[ok], lat[ok])
-    pos, _ = track.interpolate(t[ok])
-    return t[ok], np.column_stack([pos[:, :2], E, N])
+    ok = fixes.usable & track.covered(fixes.t_ns)
+    E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(fixes.lon_deg[ok], fixes.lat_deg[ok])
+    pos, _ = track.interpolate(fixes.t_ns[ok])
+    return fixes.t_ns[ok], np.column_stack([pos[:, :2], E, N])

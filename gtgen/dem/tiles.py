@@ -15,23 +15,24 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import zipfile
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import DemError, InputNotFoundError
-from gtgen.runtime.output import write_atomic
+from gtgen.runtime.output import write_json
 
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".tif", ".tiff", ".vrt", ".hgt", ".img", ".asc", ".dem", ".bil", ".flt", ".jp2")
 ARCHIVES = (".zip",)
-INDEX_VERSION = 3
+INDEX_VERSION = 4
 _FEET = {"ft", "foot", "feet", "us survey foot", "us_survey_foot", "foot_us", "us-ft", "ftus"}
 
 
@@ -54,6 +55,7 @@ class Tile:
     direct: bool  # float32, north-up: read without a warp when it is in the working CRS
     file_bytes: int
     mtime_ns: int
+    files: tuple[str, ...] = ()  # every file GDAL reads for it (a VRT's sources, sidecars)
 
 
 def _z_to_m(ds: Any) -> float:
@@ -87,24 +89,45 @@ def _read_header(gdal_path: str, file: Path) -> Tile:
             t = ds.transform
             direct = ds.dtypes[0] == "float32" and t.b == 0 and t.d == 0 and t.e < 0
             st = file.stat()
+            files = {str(file.resolve())} | {str(Path(f).resolve()) for f in ds.files if not f.startswith("/vsi")}
             return Tile(gdal_path, b.left, b.bottom, b.right, b.top, ds.crs.to_wkt(), None if ds.nodata is None else float(ds.nodata),
-                        abs(t.a), abs(t.e), _z_to_m(ds), direct, st.st_size, st.st_mtime_ns)
+                        abs(t.a), abs(t.e), _z_to_m(ds), direct, st.st_size, st.st_mtime_ns, tuple(sorted(files)))
     except DemError:
         raise
     except Exception as err:  # noqa: BLE001 - rasterio raises many types on bad files
         raise DemError(f"DEM tile '{gdal_path}' cannot be read: {err}".splitlines()[0]) from err
 
 
-def _rasters(folder: Path) -> list[tuple[str, Path]]:
-    """Return (GDAL path, file) of every raster in ``folder`` and in its zip archives."""
+def dem_files(source: Path) -> list[tuple[str, Path]]:
+    """Return (GDAL path, file) of every DEM tile of ``source``: a folder's rasters and the
+    rasters inside its zip archives, or a single raster or zip file. The one rule of what
+    is a DEM tile: dem-align reads these, and ``gtgen build`` hashes what they read."""
+    if not source.exists():
+        raise InputNotFoundError(f"DEM '{source}' does not exist; pass --dem DIR (a folder of tiles, or one raster) or set dem.dir")
+    files = sorted(source.iterdir()) if source.is_dir() else [source]
     out = []
-    for p in sorted(folder.iterdir()):
+    for p in files:
         if p.suffix.lower() in SUFFIXES:
             out.append((str(p), p))
         elif p.suffix.lower() in ARCHIVES:
-            with zipfile.ZipFile(p) as z:
-                out += [(f"/vsizip/{p}/{m}", p) for m in sorted(z.namelist()) if Path(m).suffix.lower() in SUFFIXES]
+            try:
+                with zipfile.ZipFile(p) as z:
+                    out += [(f"/vsizip/{p}/{m}", p) for m in sorted(z.namelist()) if Path(m).suffix.lower() in SUFFIXES]
+            except (OSError, zipfile.BadZipFile) as err:
+                raise DemError(f"DEM archive '{p}' cannot be read: {err}") from err
+    if not out:
+        what = f"folder '{source}' has no raster tiles" if source.is_dir() else f"file '{source}' is not a raster or zip of rasters"
+        raise DemError(f"DEM {what} (looked for {', '.join(SUFFIXES + ARCHIVES)})")
     return out
+
+
+def default_dem_dir(cfg_dir: str | None, bags: list[Path]) -> Path:
+    """Return the DEM of a drive: ``dem.dir`` if set, else ``dem/`` beside its first bag."""
+    if cfg_dir:
+        return Path(cfg_dir)
+    if not bags:
+        raise DemError("no DEM folder: set dem.dir or pass --dem DIR")
+    return Path(bags[0]).parent / "dem"
 
 
 class TileIndex:
@@ -116,20 +139,17 @@ class TileIndex:
         self.tiles = tiles
 
     @classmethod
-    def build(cls, folder: Path, cache: Path | None = None, update_cache: bool = True) -> TileIndex:
-        """Return the index of ``folder``; headers are cached in ``cache`` (JSON) by size and
-        mtime, rewritten unless ``update_cache`` is False (a worker reading what its stage wrote)."""
-        if not folder.is_dir():
-            raise InputNotFoundError(f"DEM folder '{folder}' does not exist; pass --dem DIR or set dem.dir")
-        files = _rasters(folder)
-        if not files:
-            raise DemError(f"DEM folder '{folder}' has no raster tiles (looked for {', '.join(SUFFIXES + ARCHIVES)})")
+    def build(cls, source: Path, cache: Path | None = None, update_cache: bool = True) -> TileIndex:
+        """Return the index of ``source`` (a folder of tiles, or one raster or zip file,
+        see ``dem_files``); headers are cached in ``cache`` (JSON) by size and mtime,
+        rewritten unless ``update_cache`` is False (a worker reading what its stage wrote)."""
+        files = dem_files(source)
         known: dict[str, Tile] = {}
         if cache is not None and cache.is_file():
             try:
                 data = json.loads(cache.read_text())
                 if data.get("version") == INDEX_VERSION:
-                    known = {t["path"]: Tile(**t) for t in data["tiles"]}
+                    known = {t["path"]: Tile(**{**t, "files": tuple(t["files"])}) for t in data["tiles"]}
             except (ValueError, KeyError, TypeError):
                 known = {}
         tiles = []
@@ -141,10 +161,24 @@ class TileIndex:
             tiles.append(t)
         if cache is not None and update_cache:
             try:
-                write_atomic(cache, json.dumps({"version": INDEX_VERSION, "tiles": [asdict(t) for t in tiles]}))
+                write_json(cache, {"version": INDEX_VERSION, "tiles": [asdict(t) for t in tiles]})
             except OSError as err:
                 log.warning("cannot write the DEM index cache '%s': %s", cache, err)
         return cls(tiles)
+
+    def fingerprint(self) -> str:
+        """Return a hash of every file the tiles read (sources of a VRT and sidecars
+        included): name, size and mtime, stated afresh."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for f in sorted({f for t in self.tiles for f in t.files}):
+            try:
+                st = os.stat(f)
+                h.update(f"{f}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+            except OSError:
+                h.update(f"{f}:missing\n".encode())
+        return h.hexdigest()
 
     def working_crs(self, lon_deg: float, lat_deg: float) -> str:
         """Return the CRS a drive at (lon, lat) is placed in: the tiles' own when they all
@@ -169,8 +203,53 @@ class TileIndex:
         return f"{info[0].auth_name}:{info[0].code}"
 
 
+class DemSource(Protocol):
+    """What DEM placement and filling need from a DEM, in one working CRS (metres): heights
+    and their validity in a window, and which tile each point's height comes from (for
+    judging tiles and setting them aside). ``DemMosaic`` is one; another source (a VRT
+    over HTTP, a point-cloud DEM) is one class with these members."""
+
+    crs: str
+    exclude: frozenset[int]
+
+    @property
+    def tile_names(self) -> list[str]:
+        """Each tile's identity (its path), by tile index."""
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """Return the union bounds (left, bottom, right, top) of the tiles."""
+
+    def read(self, left: float, bottom: float, right: float, top: float) -> tuple[NDArray[np.float32], tuple[float, float, float]]:
+        """Return heights [m] over the box (NaN: none) and (x0, y0, res) of the upper-left corner, rows running south."""
+
+    def tile_of(self, E: NDArray, N: NDArray) -> NDArray[np.int64]:
+        """Return the tile index of each point, -1 outside every tile."""
+
+    def without(self, tiles: frozenset[int]) -> DemSource:
+        """Return the same source without ``tiles`` (this one is closed)."""
+
+    def close(self) -> None:
+        """Release open files."""
+
+
+@dataclass(frozen=True)
+class DemRef:
+    """What opens the same mosaic in another process: the DEM source, the header cache,
+    the working CRS and the tiles set aside."""
+
+    source: str
+    cache: str | None
+    crs: str
+    exclude: frozenset[int] = frozenset()
+
+    def open(self) -> DemMosaic:
+        """Return the mosaic (reading the header cache, never rewriting it)."""
+        index = TileIndex.build(Path(self.source), cache=Path(self.cache) if self.cache else None, update_cache=False)
+        return DemMosaic(index, self.crs, self.exclude)
+
+
 class DemMosaic:
-    """Mosaicked reads of a TileIndex in the working CRS ``crs``, on one pixel lattice."""
+    """Mosaicked reads of a TileIndex in the working CRS ``crs``, on one pixel lattice (a ``DemSource``)."""
 
     def __init__(self, index: TileIndex, crs: str, exclude: frozenset[int] = frozenset()) -> None:
         """``exclude``: indices of tiles not to read (tiles judged wrong by dem-align)."""
@@ -191,6 +270,16 @@ class DemMosaic:
         self._anchor = (anchor.left, anchor.top) if anchor else (0.0, 0.0)
         self._same = [CRS.from_wkt(t.crs) == work for t in index.tiles]
         self._open: OrderedDict[int, Any] = OrderedDict()
+
+    @property
+    def tile_names(self) -> list[str]:
+        """Each tile's GDAL path, by tile index."""
+        return [t.path for t in self.index.tiles]
+
+    def without(self, tiles: frozenset[int]) -> DemMosaic:
+        """Return the mosaic without ``tiles`` (this one is closed)."""
+        self.close()
+        return DemMosaic(self.index, self.crs, self.exclude | tiles)
 
     def bounds(self) -> tuple[float, float, float, float]:
         """Return the union bounds (left, bottom, right, top) of every tile in the working CRS."""

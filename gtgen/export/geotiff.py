@@ -17,6 +17,10 @@ samples that label it (the DEM layer: that have DEM there): near the vehicle lab
 densest and freshest. The samples are placed by ``meta/T_crs_target`` (after ICP); a pixel
 reads the cell whose footprint holds its centre. ``samples`` instead writes one raster per
 sample (``samples/<k>/<range>/<layer>.tif``), the same way.
+
+The export writes into its folder file by file, each atomically, and touches nothing
+else there: a file of the same name is replaced only if gtgen wrote it (each COG carries
+the signature in its TIFFTAG_SOFTWARE), unless ``overwrite``.
 """
 
 from __future__ import annotations
@@ -28,12 +32,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.config import RANGES, stored_config
+from gtgen.config import RANGES
 from gtgen.errors import GtgenError
 from gtgen.geometry import xy_to_index
-from gtgen.runtime.output import stage_output
+from gtgen.runtime.output import atomic_output, check_replace, lock, signature
 from gtgen.runtime.progress import track
-from gtgen.storage.stores import open_dataset, read_rows
+from gtgen.storage.dataset import DatasetStore
 
 BLOCK = 16  # samples read at once (one shard): one zarr call per block, bounded memory
 TILE = 2048  # mosaic tile edge [px]: the arrays of one tile are in memory at a time
@@ -50,15 +54,16 @@ LAYERS: dict[str, tuple[str, Any]] = {
 }
 
 
-# layer: (whose pixels: label or dem, dataset array per range, what each sample adds:
-# "z" its placed base height (heights are relative to it), "t" its time after the drive's first)
-SOURCES: dict[str, tuple[str, str, str | None]] = {
-    "elevation_m": ("label", "labels/{r}/elevation_m", "z"),
-    "risk": ("label", "labels/{r}/risk", None),
-    "region": ("label", "labels/{r}/region", None),
-    "count": ("label", "labels/{r}/count", None),
-    "last_obs_s": ("label", "labels/{r}/last_dt_s", "t"),
-    "dem_elevation_m": ("dem", "dem/{r}/elevation_m", "z"),
+# layer: (whose pixels: label or dem, the dataset grid (kind, layer) per range, what each
+# sample adds: "z" its placed base height (heights are relative to it), "t" its time after
+# the drive's first)
+SOURCES: dict[str, tuple[str, tuple[str, str], str | None]] = {
+    "elevation_m": ("label", ("labels", "elevation_m"), "z"),
+    "risk": ("label", ("labels", "risk"), None),
+    "region": ("label", ("labels", "region"), None),
+    "count": ("label", ("labels", "count"), None),
+    "last_obs_s": ("label", ("labels", "last_dt_s"), "t"),
+    "dem_elevation_m": ("dem", ("dem", "elevation_m"), "z"),
 }
 
 
@@ -140,11 +145,11 @@ def _blocks(ks: NDArray) -> list[NDArray]:
     return [ks[a:a + BLOCK] for a in range(0, len(ks), BLOCK)]
 
 
-def _composite(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, size: int, res: float) -> None:
+def _composite(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, size: int, res: float) -> None:
     """Pick for each pixel the nearest sample that labels it (and that has DEM there)."""
     for block in _blocks(ks):
-        region = read_rows(g[f"labels/{r}/region"], block)
-        dem = read_rows(g[f"dem/{r}/elevation_m"], block)
+        region = ds.grids("labels", r, "region", block)
+        dem = ds.grids("dem", r, "elevation_m", block)
         for n, k in enumerate(block):
             win, cell, d2 = _footprint(m, T[k], size, res)
             valid = {"label": region[n].ravel() > 0, "dem": np.isfinite(dem[n].ravel())}
@@ -155,7 +160,7 @@ def _composite(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, size: int, r
                 m.cell[kind][win] = np.where(take, cell, m.cell[kind][win])
 
 
-def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -> dict[str, NDArray]:
+def _layers(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -> dict[str, NDArray]:
     """Gather each layer's mosaic from the samples the composite picked (``t_s``: each
     sample's time after the drive's first, [s]): the pixels are grouped by sample once (one
     sort), then each sample's arrays are read once."""
@@ -169,7 +174,7 @@ def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -
         groups[kind] = (pix, np.searchsorted(s[pix], ks, "left"), np.searchsorted(s[pix], ks, "right"), m.cell[kind].reshape(-1))
     n = 0
     for block in _blocks(ks):
-        arrays = {layer: read_rows(g[path.format(r=r)], block) for layer, (_, path, _) in SOURCES.items()}
+        arrays = {layer: ds.grids(kind, r, name, block) for layer, (_, (kind, name), _) in SOURCES.items()}
         for b, k in enumerate(block):
             add = {None: 0, "z": T[k][2, 3], "t": float(t_s[k])}
             for layer, (kind, _, plus) in SOURCES.items():
@@ -181,88 +186,105 @@ def _layers(m: _Mosaic, g: Any, r: str, ks: NDArray, T: NDArray, t_s: NDArray) -
 
 
 def _open_bands(folder: Path, r: str, width: int, height: int, crs: str, transform: Any) -> dict[str, Any]:
-    """Open one tiled GeoTIFF per layer for writing window by window (empty blocks are not
-    written); ``_to_cog`` turns each into a COG."""
+    """Open one tiled GeoTIFF per layer in the scratch ``folder`` for writing window by
+    window (empty blocks are not written); ``_to_cog`` turns each into a COG."""
     import rasterio
 
-    folder.mkdir(parents=True, exist_ok=True)
     out = {}
     for layer, (dtype, nodata) in LAYERS.items():
-        ds = rasterio.open(folder / f".{layer}.tif", "w", driver="GTiff", width=width, height=height, count=1, dtype=dtype,
+        ds = rasterio.open(folder / f"{r}.{layer}.tif", "w", driver="GTiff", width=width, height=height, count=1, dtype=dtype,
                            crs=crs, transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
                            compress="DEFLATE", sparse_ok=True, BIGTIFF="IF_SAFER")
         ds.set_band_description(1, f"{r} {layer}")
+        ds.update_tags(TIFFTAG_SOFTWARE=signature())
         out[layer] = ds
     return out
 
 
-def _to_cog(src_path: Path, path: Path) -> None:
-    """Copy a GeoTIFF into a Cloud-Optimized GeoTIFF (deflate, 256 px tiles, overviews down
-    to 256 px; averaged, or nearest for codes and counts), and remove the source."""
+def _to_cog(src_path: Path, path: Path, overwrite: bool) -> None:
+    """Copy a GeoTIFF into the Cloud-Optimized GeoTIFF ``path`` (atomically; deflate, 256 px
+    tiles, overviews down to 256 px; averaged, or nearest for codes and counts), and remove
+    the source."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
-    with rasterio.open(src_path) as src:
+    with rasterio.open(src_path) as src, atomic_output(path, overwrite) as tmp:
         kind = np.dtype(src.dtypes[0]).kind
-        rio_copy(src, str(path), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
+        rio_copy(src, str(tmp), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
                  overview_resampling="nearest" if kind in "ui" else "average")
     src_path.unlink()
 
 
-def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None) -> ExportResult:
-    """Write the GeoTIFFs of ``dataset`` into the folder ``out`` (atomically): per drive and
-    range the mosaics, or with ``samples`` one raster set per listed sample."""
-    g, info = open_dataset(dataset)
-    if info.n_samples == 0:
-        raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
-    cfg = stored_config(info.attrs.config, f"dataset '{dataset}'")
-    T = g["meta/T_crs_target"][:]
-    drive = g["meta/drive"][:]
-    t_ns = g["meta/t_ns"][:]
-    if samples is not None:
-        bad = [k for k in samples if not 0 <= k < info.n_samples]
-        if bad:
-            raise GtgenError(f"--samples {bad[0]} is not a sample of '{dataset}' (0..{info.n_samples - 1})")
+def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, overwrite: bool = False) -> ExportResult:
+    """Write the GeoTIFFs of ``dataset`` into the folder ``out``, each file atomically and
+    nothing else touched: per drive and range the mosaics, or with ``samples`` one raster
+    set per listed sample."""
+    import tempfile
+
     import rasterio
 
+    ds = DatasetStore(dataset)
+    if ds.n_samples == 0:
+        raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
+    if out.exists() and not out.is_dir():
+        raise GtgenError(f"output '{out}' is a file; export geotiff writes into a folder")
+    cfg = ds.config
+    T, drive, t_ns = ds.meta("T_crs_target"), ds.meta("drive"), ds.meta("t_ns")
+    if samples is not None:
+        bad = [k for k in samples if not 0 <= k < ds.n_samples]
+        if bad:
+            raise GtgenError(f"--samples {bad[0]} is not a sample of '{dataset}' (0..{ds.n_samples - 1})")
+    groups = [(f"samples/{k}", np.array([k])) for k in samples] if samples is not None else \
+             [(d.name or f"drive{i}", np.nonzero(drive == i)[0]) for i, d in enumerate(ds.info.drives)]
+    files = [out / name / r / f"{layer}.tif" for name, ks in groups if len(ks) for r in RANGES for layer in LAYERS]
+    for f in files:  # before any work: nothing of the user's is replaced
+        check_replace(f, overwrite)
     res = ExportResult(out)
+    made = not out.exists()
     # GDAL caches up to 5 % of the machine's memory by default; a fixed cache keeps the
     # export's memory bounded
-    with stage_output(out, reads=[dataset]) as tmp, rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-        groups = [(f"samples/{k}", np.array([k])) for k in samples] if samples is not None else \
-                 [(d.name or f"drive{i}", np.nonzero(drive == i)[0]) for i, d in enumerate(info.attrs.drives)]
-        for name, ks in groups:
-            if not len(ks):
-                continue
-            d = int(drive[ks[0]])
-            t_s = (t_ns - t_ns[drive == d].min()) * 1e-9  # after the drive's first sample
-            for r in RANGES:
-                for layer in _write_mosaic(tmp / name / r, g, r, cfg.grids.get(r), ks, T, t_s, info.attrs.drives[d].crs):
-                    res.files.append(out / name / r / f"{layer}.tif")
-            res.samples += len(ks)
+    with lock(out), lock(dataset, shared=True), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB), \
+            tempfile.TemporaryDirectory(prefix="gtgen-geotiff-") as scratch:
+        try:
+            for name, ks in groups:
+                if not len(ks):
+                    continue
+                d = int(drive[ks[0]])
+                t_s = (t_ns - t_ns[drive == d].min()) * 1e-9  # after the drive's first sample
+                for r in RANGES:
+                    folder = out / name / r
+                    _write_mosaic(Path(scratch), folder, ds, r, cfg.grids.get(r), ks, T, t_s, ds.info.drives[d].crs, overwrite)
+                    res.files += [folder / f"{layer}.tif" for layer in LAYERS]
+                res.samples += len(ks)
+        except BaseException:
+            if made:  # a folder made for this export holds only what it wrote
+                import shutil
+
+                shutil.rmtree(out, ignore_errors=True)
+            raise
     return res
 
 
-def _write_mosaic(folder: Path, g: Any, r: str, gr: Any, ks: NDArray, T: NDArray, t_s: NDArray, crs: str) -> list[str]:
-    """Write the COGs of range ``r`` for samples ``ks`` into ``folder``, tile by tile;
-    return the layers written."""
+def _write_mosaic(scratch: Path, folder: Path, ds: DatasetStore, r: str, gr: Any, ks: NDArray, T: NDArray, t_s: NDArray,
+                  crs: str, overwrite: bool) -> None:
+    """Write the COGs of range ``r`` for samples ``ks`` into ``folder``, tile by tile (the
+    tiled GeoTIFFs in ``scratch`` first)."""
     from rasterio.transform import from_origin
     from rasterio.windows import Window
 
     res_m = gr.resolution_m
     west, north, width, height = _mosaic_grid(T[ks], gr.length_m, res_m)
-    bands = _open_bands(folder, r, width, height, crs, from_origin(west, north, res_m, res_m))
+    bands = _open_bands(scratch, r, width, height, crs, from_origin(west, north, res_m, res_m))
     try:
         for r0, c0, h, w, near in track(_tiles(T, ks, west, north, width, height, res_m, gr.length_m), f"export geotiff: {r}"):
             m = _Mosaic(west + c0 * res_m, north - r0 * res_m, res_m, w, h)
-            _composite(m, g, r, near, T, gr.size, res_m)
+            _composite(m, ds, r, near, T, gr.size, res_m)
             used = np.unique(np.concatenate([s[s >= 0] for s in m.sample.values()]))
             if len(used):
-                for layer, band in _layers(m, g, r, used, T, t_s).items():
+                for layer, band in _layers(m, ds, r, used, T, t_s).items():
                     bands[layer].write(band, 1, window=Window(c0, r0, w, h))
     finally:
-        for ds in bands.values():
-            ds.close()
+        for b in bands.values():
+            b.close()
     for layer in LAYERS:
-        _to_cog(folder / f".{layer}.tif", folder / f"{layer}.tif")
-    return list(LAYERS)
+        _to_cog(scratch / f"{r}.{layer}.tif", folder / f"{layer}.tif", overwrite)

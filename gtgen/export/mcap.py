@@ -19,7 +19,8 @@ Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
   in ``target``.
 
 The file is written with rosbags' MCAP writer (zstd chunks), schemas included, so it
-plays without the message packages installed.
+plays without the message packages installed; its rosbag2 metadata carries gtgen's
+signature (``custom_data.written_by``), so a later export may replace it.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 import io
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,10 +38,9 @@ from numpy.typing import NDArray
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat
-from gtgen.runtime.output import stage_output
+from gtgen.runtime.output import signature, stage_output
 from gtgen.runtime.progress import track
-from gtgen.storage.chunks import RangeReader
-from gtgen.storage.stores import open_dataset, read_rows
+from gtgen.storage.dataset import DatasetStore
 
 LABEL_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence", "region": "region",
                 "count": "count", "last_dt_s": "last_dt_s"}
@@ -80,36 +81,33 @@ class _Topics:
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
 
-def export_mcap(dataset: Path, out: Path) -> McapExport:
+def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport:
     """Write ``dataset`` as the ROS 2 MCAP file ``out`` (atomically)."""
     from gtgen.bag.messages import MessageFactory, open_mcap_writer
 
-    g, info = open_dataset(dataset)
-    if info.n_samples == 0:
+    ds = DatasetStore(dataset)
+    if ds.n_samples == 0:
         raise GtgenError(f"dataset '{dataset}' has no samples; nothing to export")
     if out.suffix != ".mcap":
         raise GtgenError(f"output '{out}' must be a file ending in .mcap")
-    from gtgen.config import stored_config
-
-    cfg = stored_config(info.attrs.config, f"dataset '{dataset}'")
-    cams = list(info.attrs.cameras)
-    t_ns = g["meta/t_ns"][:]
-    drive = g["meta/drive"][:]
-    T = g["meta/T_crs_target"][:]
+    cfg = ds.config
+    cams = list(ds.info.cameras)
+    t_ns, drive, T = ds.meta("t_ns"), ds.meta("drive"), ds.meta("T_crs_target")
     order = np.lexsort((t_ns, drive))
     origin = {int(d): T[order[np.nonzero(drive[order] == d)[0][0]], :3, 3].copy() for d in np.unique(drive)}
-    offsets = g["inputs/voxel_offsets"][:]
-    points = RangeReader(g["inputs/voxel_points_m"])
+    offsets = ds.voxel_offsets()
+    points = ds.voxel_points()
     fac = MessageFactory(ros1=False)
     res = McapExport(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with stage_output(out, reads=[dataset]) as tmp, tempfile.TemporaryDirectory(dir=out.parent, prefix=".gtgen-mcap-") as scratch:
+    with stage_output(out, reads=[dataset], overwrite=overwrite) as tmp, \
+            tempfile.TemporaryDirectory(dir=out.parent, prefix=".gtgen-mcap-") as scratch:
         w = open_mcap_writer(Path(scratch) / "bag")
+        w.set_custom_data("written_by", signature())  # type: ignore[attr-defined]
         topics = _Topics(w, fac.store)
         try:
             for a in track(range(0, len(order), BLOCK), "export mcap", total=(len(order) + BLOCK - 1) // BLOCK):
                 ks = np.sort(order[a:a + BLOCK])  # read one block in index order, write in time order
-                block = _read_block(g, ks, cams)
+                block = _read_block(ds, ks)
                 for k in order[a:a + BLOCK]:
                     T_map = T[k].copy()
                     T_map[:3, 3] -= origin[int(drive[k])]
@@ -122,43 +120,44 @@ def export_mcap(dataset: Path, out: Path) -> McapExport:
     return res
 
 
-def _read_block(g: object, ks: NDArray, cams: list[str]) -> dict[str, NDArray]:
-    """Read the arrays a block of samples needs (``ks`` ascending)."""
-    paths = [f"labels/{r}/{v}" for r in RANGES for v in LABEL_LAYERS.values()]
-    paths += [f"xracer/{r}/{v}" for r in RANGES for v in XRACER_LAYERS.values()]
-    paths += [f"dem/{r}/elevation_m" for r in RANGES]
-    paths += ["inputs/images", "inputs/K", "inputs/T_base_cam", "inputs/T_target_base"]
-    return {p: read_rows(g[p], ks) for p in paths}  # type: ignore[index]
+def _read_block(ds: DatasetStore, ks: NDArray) -> dict:
+    """Read the grids and inputs a block of samples needs (``ks`` ascending), keyed
+    (kind, range, layer) and by input name."""
+    want = [("labels", r, v) for r in RANGES for v in LABEL_LAYERS.values()]
+    want += [("xracer", r, v) for r in RANGES for v in XRACER_LAYERS.values()] + [("dem", r, "elevation_m") for r in RANGES]
+    out: dict = {(kind, r, v): ds.grids(kind, r, v, ks) for kind, r, v in want}
+    out.update({n: ds.input_rows(n, ks) for n in ("images", "K", "T_base_cam", "T_target_base")})
+    return out
 
 
 def _tf(fac: object, t: int, parent: str, child: str, T: NDArray) -> object:
     return fac.transform_stamped(t, parent, child, T[:3, 3], matrix_to_quat(T[:3, :3]))  # type: ignore[attr-defined]
 
 
-def _write_sample(fac, topics: _Topics, block: dict[str, NDArray], i: int, k: int, t: int, T_map_target: NDArray,
-                  cams: list[str], cfg, points: RangeReader, offsets: NDArray) -> None:
+def _write_sample(fac, topics: _Topics, block: dict, i: int, k: int, t: int, T_map_target: NDArray,
+                  cams: list[str], cfg, points: Callable[[int, int], NDArray], offsets: NDArray) -> None:
     """Write sample ``k`` (row ``i`` of ``block``) at stamp ``t``."""
-    tfs = [_tf(fac, t, "map", "target", T_map_target), _tf(fac, t, "target", "base_link", block["inputs/T_target_base"][i])]
-    tfs += [_tf(fac, t, "base_link", f"camera_{c}", block["inputs/T_base_cam"][i, ci]) for ci, c in enumerate(cams)]
+    tfs = [_tf(fac, t, "map", "target", T_map_target), _tf(fac, t, "target", "base_link", block["T_target_base"][i])]
+    tfs += [_tf(fac, t, "base_link", f"camera_{c}", block["T_base_cam"][i, ci]) for ci, c in enumerate(cams)]
     topics.write("/tf", "tf2_msgs/msg/TFMessage", t, fac.serialize(fac.tf_message(tfs), "tf2_msgs/msg/TFMessage"))
     for r in RANGES:
         gr = cfg.grids.get(r)
-        layers = {name: block[f"labels/{r}/{v}"][i].astype(np.float32) for name, v in LABEL_LAYERS.items()}
-        layers["dem_elevation"] = block[f"dem/{r}/elevation_m"][i].astype(np.float32)
+        layers = {name: block[("labels", r, v)][i].astype(np.float32) for name, v in LABEL_LAYERS.items()}
+        layers["dem_elevation"] = block[("dem", r, "elevation_m")][i].astype(np.float32)
         msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), layers, (0, 0), k)
         topics.write(f"/gtgen/labels/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
-        xr = {name: block[f"xracer/{r}/{v}"][i].astype(np.float32) for name, v in XRACER_LAYERS.items()}
+        xr = {name: block[("xracer", r, v)][i].astype(np.float32) for name, v in XRACER_LAYERS.items()}
         msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), xr, (0, 0), k)
         topics.write(f"/gtgen/xracer/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
         grid = fac.foxglove_grid(t, "target", gr.resolution_m, {n: layers[n] for n in GRID_LAYERS})
         topics.write(f"/gtgen/labels/{r}/grid", "foxglove_msgs/msg/Grid", t, fac.serialize(grid, "foxglove_msgs/msg/Grid"))
-    images = block["inputs/images"][i]
+    images = block["images"][i]
     for ci, c in enumerate(cams):
         img = images[ci]
         msg = fac.compressed_image(t, f"camera_{c}", _jpeg(img), k)
         topics.write(f"/gtgen/camera_{c}/image/compressed", "sensor_msgs/msg/CompressedImage", t,
                      fac.serialize(msg, "sensor_msgs/msg/CompressedImage"))
-        msg = fac.camera_info(t, f"camera_{c}", img.shape[1], img.shape[0], block["inputs/K"][i, ci], k)
+        msg = fac.camera_info(t, f"camera_{c}", img.shape[1], img.shape[0], block["K"][i, ci], k)
         topics.write(f"/gtgen/camera_{c}/camera_info", "sensor_msgs/msg/CameraInfo", t, fac.serialize(msg, "sensor_msgs/msg/CameraInfo"))
     pts = points(int(offsets[k]), int(offsets[k + 1]))
     msg = fac.pointcloud_xyz(t, "target", pts, k)

@@ -24,8 +24,7 @@ from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
-from gtgen.storage.schema import DRIVE
-from gtgen.storage.stores import create_group, store_attrs
+from gtgen.storage.drive import DriveWriter
 
 
 @dataclass
@@ -52,32 +51,33 @@ class ExtractResult:
 
 
 def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2, n_slices: int | None = None,
-                staging: bool = True, bag_sha256: list[str] | None = None) -> ExtractResult:
+                staging: bool = True, bag_sha256: list[str] | None = None, overwrite: bool = False) -> ExtractResult:
     """Read the bags of one drive into the drive store ``out`` (written atomically).
 
     The bags are read as record-time slices on ``workers`` processes (``n_slices`` fixes
     their number, for tests), once: each slice stages what the plan will likely keep.
     ``staging=False`` stages nothing and reads the kept messages in a second pass (the
     two-pass reference). The store depends on none of the three. ``bag_sha256``, the
-    bags' hashes if the caller has them already, spares hashing them again.
+    bags' hashes if the caller has them already, spares hashing them again. An existing
+    ``out`` that gtgen did not write is replaced only with ``overwrite``.
     """
     if bag_sha256 is not None and len(bag_sha256) != len(paths):
         raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
-    with stage_output(out) as tmp, Pool(workers, warm=import_readers) as pool, \
+    with stage_output(out, overwrite=overwrite) as tmp, Pool(workers, warm=import_readers) as pool, \
             ThreadPoolExecutor(max_workers=1) as hasher:  # hashing releases the GIL: it overlaps the read
         roles, bounds, frames = _open(paths, cfg, workers, n_slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []
-        root = create_group(tmp)  # before the read: the slices stage into it
+        w = DriveWriter(tmp)  # before the read: the slices stage into it
         scan, parts = _read(pool, paths, cfg, roles, frames, bounds, tmp if staging else None)
         tf = calib.tf_buffer(cfg, scan)
         track, poses, warnings = calib.pose_track(cfg, scan, tf)
         calib.drop_untransformable(cfg, scan, tf)
         plan = _plan(cfg, track, scan)
-        write_small(root, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
-        reread = write_large(root, tmp, paths, cfg, roles, scan, tf, plan, parts, pool)
+        write_small(w, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
+        reread = write_large(w, paths, cfg, roles, scan, tf, plan, parts, pool)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
         result.poses = poses
-        _finish(root, tmp, paths, cfg, result)
+        _finish(w, paths, cfg, result)
     return result
 
 
@@ -120,11 +120,11 @@ def _result(out: Path, scan: Scan, plan: Plan, warnings: list[str], reread: int,
     )
 
 
-def _finish(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, result: ExtractResult) -> None:
+def _finish(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, result: ExtractResult) -> None:
     """Write the store's attributes (last: they mark it complete; the resolved config is one)."""
-    root.attrs.update(store_attrs(
-        DRIVE, gtgen_version=__version__,
+    w.complete(
+        gtgen_version=__version__,
         bags=[{"path": str(p.resolve()), "sha256": h} for p, h in zip(paths, result.bag_sha256)],
         config=cfg.model_dump(mode="json"), report=result.report(), reasons=codes.REASONS,
         image_size=[cfg.extract.image_width, cfg.extract.image_height], cameras=list(CAMERAS),
-    ))
+    )

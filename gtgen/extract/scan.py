@@ -157,7 +157,7 @@ def prepass(bags: BagSet, cfg: GtgenConfig, roles: dict[str, str]) -> Frames:
     tp = cfg.topics
     static: dict[Edge, NDArray] = {}
     frames = {tp.odom_frame, tp.base_frame}
-    for topic, _, _, msg, _ in bags.messages([tp.tf_static]):
+    for _, _, _, msg, _ in bags.messages([tp.tf_static]):
         if msg is not None:
             static.update({(frame_id(tr.header.frame_id), frame_id(tr.child_frame_id)): transform_matrix(tr.transform)
                            for tr in msg.transforms})  # type: ignore[attr-defined]

@@ -10,7 +10,6 @@ import shutil
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,65 +28,31 @@ from gtgen.extract.select import Plan
 from gtgen.extract.stage import STAGE, Staged
 from gtgen.extract.voxels import padded, thinned_points, to_odom_frame, voxel_points
 from gtgen.runtime.pool import BackgroundWrites, Pool
-from gtgen.storage.chunks import (
-    Runs,
-    check_encoded_chunks,
-    chunk_file,
-    compressors,
-    place_chunk,
-)
-from gtgen.storage.schema import DRIVE, MAP_LAYERS
+from gtgen.storage.chunks import Runs
+from gtgen.storage.drive import DriveSamples, DriveWriter, Fixes
+from gtgen.storage.schema import MAP_LAYERS
 
 log = logging.getLogger(__name__)
 
 Want = dict[str, dict[int, list[int]]]  # role -> {message ordinal: indices it fills}
 
 
-def create(root: Any, path: str, shape: tuple, chunks: tuple | None = None, flat: bool = False) -> Any:
-    """Create drive-store array ``path``; ``flat`` keys its chunks 'c.i.j...' (one folder)."""
-    sp = DRIVE.spec(path)
-    chunks = chunks or tuple(max(1, s) for s in shape)
-    keys = {"name": "default", "separator": "." if flat else "/"}
-    return root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, fill_value=sp.fill_value(), compressors=compressors(),
-                             chunk_key_encoding=keys)
-
-
-def write_small(root: Any, scan: Scan, track: PoseTrack, plan: Plan, K: NDArray, T_base_cam: NDArray) -> None:
+def write_small(w: DriveWriter, scan: Scan, track: PoseTrack, plan: Plan, K: NDArray, T_base_cam: NDArray) -> None:
     """Write the poses, GNSS fixes, candidates, per-sample rows and calibration."""
-    create(root, "poses/t_ns", track.t_ns.shape)[:] = track.t_ns
-    create(root, "poses/pos_odom_m", track.pos.shape)[:] = track.pos
-    create(root, "poses/quat_odom_xyzw", track.quat.shape)[:] = track.quat
+    w.write_poses(track.t_ns, track.pos, track.quat)
     g = sorted(scan.gnss, key=lambda x: x[0])
     G = len(g)
-    cols = {
-        "gnss/t_ns": np.array([x[0] for x in g], np.int64).reshape(G),
-        "gnss/lat_deg": np.array([x[1] for x in g], np.float64).reshape(G),
-        "gnss/lon_deg": np.array([x[2] for x in g], np.float64).reshape(G),
-        "gnss/alt_m": np.array([x[3] for x in g], np.float64).reshape(G),
-        "gnss/var_enu_m2": np.array([x[4] for x in g], np.float64).reshape(G, 3),
-        "gnss/status": np.array([x[5] for x in g], np.int8).reshape(G),
-    }
-    for k, v in cols.items():
-        a = create(root, k, v.shape, chunks=tuple(max(1, s) for s in v.shape))
-        if v.size:
-            a[:] = v
-    create(root, "candidates/t_ns", plan.cand_t.shape)[:] = plan.cand_t
-    create(root, "candidates/reason", plan.cand_reason.shape)[:] = plan.cand_reason
-    S = len(plan.t)
+    w.write_gnss(Fixes(
+        np.array([x[0] for x in g], np.int64).reshape(G), np.array([x[1] for x in g], np.float64).reshape(G),
+        np.array([x[2] for x in g], np.float64).reshape(G), np.array([x[3] for x in g], np.float64).reshape(G),
+        np.array([x[4] for x in g], np.float64).reshape(G, 3), np.array([x[5] for x in g], np.int8).reshape(G),
+    ))
+    w.write_candidates(plan.cand_t, plan.cand_reason)
     pos, quat = track.interpolate(plan.t)
     dist = np.interp(plan.t.astype(np.float64), track.t_ns.astype(np.float64), track.distance())
-    create(root, "samples/t_ns", (S,))[:] = plan.t
-    create(root, "samples/pos_odom_m", (S, 3))[:] = pos
-    create(root, "samples/quat_odom_xyzw", (S, 4))[:] = quat
-    create(root, "samples/distance_m", (S,))[:] = dist
-    for r in RANGES:
-        create(root, f"samples/map_index_{r}", (S,))[:] = plan.sample_map[r]
-    create(root, "samples/image_t_ns", (S, 4))[:] = plan.image_t
-    create(root, "samples/voxel_t_ns", (S,))[:] = plan.voxel_t
-    create(root, "samples/voxel_index", (S,))[:] = plan.voxel_index
-    create(root, "voxel_maps/t_ns", plan.voxel_map_t.shape)[:] = plan.voxel_map_t
-    create(root, "samples/T_base_cam", (S, 4, 4, 4))[:] = T_base_cam
-    create(root, "calib/K", (4, 3, 3))[:] = K
+    samples = DriveSamples(plan.t, pos, quat, dist, {r: plan.sample_map[r] for r in RANGES}, plan.image_t, plan.voxel_t,
+                           plan.voxel_index, T_base_cam)
+    w.write_samples(samples, plan.voxel_map_t, K)
 
 
 def _wanted(plan: Plan) -> Want:
@@ -132,34 +97,20 @@ class Slices:
 class _Large:
     """Fills the store's images, maps and voxel clouds (see ``write_large``)."""
 
-    def __init__(self, root: Any, tmp: Path, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices, tf: TfBuffer) -> None:
-        self.root, self.tmp, self.cfg, self.scan, self.plan, self.slices, self.tf = root, tmp, cfg, scan, plan, slices, tf
+    def __init__(self, w: DriveWriter, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices, tf: TfBuffer) -> None:
+        self.w, self.tmp, self.cfg, self.scan, self.plan, self.slices, self.tf = w, w.path, cfg, scan, plan, slices, tf
         self.centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
         self.yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
         self.z0 = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
         self.n_points = np.zeros(len(plan.voxel_ord), np.int64)
         self.missing: Want = defaultdict(dict)
         self.raw: list[tuple[int, Path, int, str]] = []  # (index, .npy, stamp, frame) of voxel maps staged in their frame
-        self._made: set[Path] = set()
-        self._seps: dict[str, str] = {}
 
     def create_arrays(self) -> None:
-        S, P = len(self.plan.t), self.cfg.shards.max_voxel_points
         W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
-        create(self.root, "samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3), flat=True)
-        for r in RANGES:
-            shape, res = self.scan.map_shape[f"map.{r}"]
-            for name in MAP_LAYERS:
-                create(self.root, f"maps/{r}/{name}", (len(self.plan.map_t[r]),) + shape, chunks=(1,) + shape, flat=True)
-            self.root[f"maps/{r}"].attrs.update({"resolution_m": res, "shape": list(shape), "frame": self.cfg.topics.odom_frame})
-        V = len(self.plan.voxel_ord)
-        self.vox = create(self.root, "voxel_maps/points_odom_m", (V, P, 3), chunks=(1, P, 3), flat=True)
-
-    def _place(self, src: Path, dst_path: str, coords: list[tuple[int, ...]]) -> None:
-        if dst_path not in self._seps:
-            self._seps[dst_path] = check_encoded_chunks(self.root[dst_path])
-        for n, c in enumerate(coords):  # the last use takes the file, earlier ones link to it
-            place_chunk(src, chunk_file(self.tmp, dst_path, c, self._seps[dst_path]), move=n == len(coords) - 1, made=self._made)
+        maps = {r: (len(self.plan.map_t[r]), *self.scan.map_shape[f"map.{r}"], self.cfg.topics.odom_frame) for r in RANGES}
+        self.w.create_large(len(self.plan.t), (H, W), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points)
+        self.vox = self.w.voxels()
 
     def place_staged(self, want: Want) -> None:
         """Move what the slices staged into place; note in ``missing`` what they did not."""
@@ -170,7 +121,7 @@ class _Large:
                 if stg is None or i not in stg.ordinals[role]:
                     self.missing[role][o] = targets
                     continue
-                self._place(stg.chunk(role, i), "samples/images", [(s_i, c_i, 0, 0, 0) for s_i in targets])
+                self.w.place_image(stg.chunk(role, i), c_i, targets)
         for r in RANGES:
             self._place_maps(r, want[f"map.{r}"])
         for o, targets in want["voxel_map"].items():
@@ -181,7 +132,7 @@ class _Large:
             elif got[0] < 0:
                 self.raw += [(v, stg.raw_voxels(i), got[1], got[2]) for v in targets]
             else:
-                self._place(stg.chunk("voxel_map", i), "voxel_maps/points_odom_m", [(v, 0, 0) for v in targets])
+                self.w.place_voxels(stg.chunk("voxel_map", i), targets)
                 self.n_points[targets] = got[0]
 
     def _place_maps(self, r: str, want: dict[int, list[int]]) -> None:
@@ -192,7 +143,7 @@ class _Large:
                 self.missing[role][o] = targets
                 continue
             for name in MAP_LAYERS:
-                self._place(stg.chunk(role, i, name), f"maps/{r}/{name}", [(k_i, 0, 0) for k_i in targets])
+                self.w.place_map(stg.chunk(role, i, name), r, name, targets)
             pose = map_to_odom(self.cfg, self.tf, *stg.map_pose[(role, i)], int(self.plan.map_t[r][targets[0]]))
             self.centers[r][targets], self.yaws[r][targets], self.z0[r][targets] = pose
 
@@ -228,20 +179,15 @@ class _Large:
         return n_missing
 
     def finish(self) -> None:
-        create(self.root, "voxel_maps/n_points", (len(self.n_points),))[:] = self.n_points
-        for r in RANGES:
-            create(self.root, f"maps/{r}/t_ns", self.plan.map_t[r].shape)[:] = self.plan.map_t[r]
-            create(self.root, f"maps/{r}/center_odom_m", self.centers[r].shape)[:] = self.centers[r]
-            create(self.root, f"maps/{r}/yaw_odom_rad", self.yaws[r].shape)[:] = self.yaws[r]
-            create(self.root, f"maps/{r}/z_offset_m", self.z0[r].shape)[:] = self.z0[r]
+        self.w.finish_large(self.n_points, {r: (self.plan.map_t[r], self.centers[r], self.yaws[r], self.z0[r]) for r in RANGES})
         shutil.rmtree(self.tmp / STAGE, ignore_errors=True)
 
 
-def write_large(root: Any, tmp: Path, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
+def write_large(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
                 tf: TfBuffer, plan: Plan, slices: Slices, pool: Pool) -> int:
     """Put the plan's images, maps and voxel clouds in the store; return how many kept
     messages no slice had staged (read in a second pass)."""
-    large = _Large(root, tmp, cfg, scan, plan, slices, tf)
+    large = _Large(w, cfg, scan, plan, slices, tf)
     large.create_arrays()
     large.place_staged(_wanted(plan))
     reread = large.read_missing(pool, paths, roles)
@@ -263,14 +209,12 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
     """The targeted second pass over [start, stop) (a process-pool job): decode the kept
     messages in ``want``, write images and maps into their chunks; return map poses and
     voxel points."""
-    import zarr
-
     tp = cfg.topics
     W, H = cfg.extract.image_width, cfg.extract.image_height
     layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
-    root = zarr.open_group(store, mode="r+")
-    images = root["samples/images"]
-    maps = {r: {name: root[f"maps/{r}/{name}"] for name in MAP_LAYERS} for r in RANGES}
+    w = DriveWriter.reopen(Path(store))
+    images = w.images()
+    maps = {r: {name: w.map_layer(r, name) for name in MAP_LAYERS} for r in RANGES}
     out = SliceOut(0, {}, {})
     if not any(want.values()):
         return out

@@ -116,7 +116,7 @@ class Atlas:
         else:
             if len(self.slots) >= self.cap:
                 new = max(16, 2 * self.cap)
-                for k, (dt, fill) in self.fields.items():
+                for k, (dt, _) in self.fields.items():
                     grown = np.empty((new, self.tile, self.tile), dtype=dt)
                     grown[: self.cap] = self.data[k]
                     self.data[k] = grown

@@ -11,15 +11,13 @@ import numpy as np
 from gtgen import __version__, codes
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import StoreError
-from gtgen.fuse.fusion import FuseParams, MapSource, SampleGrid, fuse_range
+from gtgen.fuse.fusion import Fused, FuseParams, MapSource, SampleGrid, fuse_range
 from gtgen.fuse.lattice import to_lattice
-from gtgen.geometry import quat_to_yaw
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
-from gtgen.storage.chunks import ChunkFiles, compressors
-from gtgen.storage.schema import FUSED, MAP_LAYERS
-from gtgen.storage.stores import create_group, open_drive, store_attrs
+from gtgen.storage.drive import DriveStore
+from gtgen.storage.fused import FusedWriter
 
 log = logging.getLogger(__name__)
 
@@ -37,32 +35,22 @@ class FuseResult:
     reason: np.ndarray  # (S,) 0 = fused, else why not
 
 
-def zarr_map_source(drive, rng: str, res: float) -> MapSource:
-    """Return the maps of range ``rng`` of an open drive store as a MapSource on ``res``."""
-    g = drive[f"maps/{rng}"]
-    t = g["t_ns"][:]
-    centers = g["center_odom_m"][:]
-    yaws = g["yaw_odom_rad"][:]
-    z0 = g["z_offset_m"][:]
-    map_res = float(g.attrs["resolution_m"])
-    arrs = tuple(ChunkFiles(g[name]) for name in MAP_LAYERS)
+def map_source(drive: DriveStore, rng: str, res: float) -> MapSource:
+    """Return the maps of range ``rng`` of a drive store as a MapSource on ``res``."""
+    maps = drive.maps(rng)
 
     def load(i: int):
-        elev, risk, conf = (a.read(i) for a in arrs)
-        if z0[i]:
-            elev += np.float32(z0[i])
-        return to_lattice(int(t[i]), (elev, risk, conf), centers[i], float(yaws[i]), map_res, res)
+        return to_lattice(int(maps.t_ns[i]), maps.layers(i), maps.center_odom_m[i], float(maps.yaw_odom_rad[i]),
+                          maps.resolution_m, res)
 
-    return MapSource(t, load)
+    return MapSource(maps.t_ns, load)
 
 
-def sample_grids(drive, rng: str, size: int, res: float) -> list[SampleGrid]:
-    """Return the target grids of every sample of an open drive store for range ``rng``."""
-    t = drive["samples/t_ns"][:]
-    pos = drive["samples/pos_odom_m"][:]
-    yaw = quat_to_yaw(drive["samples/quat_odom_xyzw"][:])
-    cur = drive[f"samples/map_index_{rng}"][:]
-    return [SampleGrid(int(t[k]), pos[k], float(yaw[k]), int(cur[k]), size, res) for k in range(len(t))]
+def sample_grids(drive: DriveStore, rng: str, size: int, res: float) -> list[SampleGrid]:
+    """Return the target grids of every sample of a drive store for range ``rng``."""
+    s = drive.samples
+    return [SampleGrid(int(s.t_ns[k]), s.pos_odom_m[k], float(s.yaw_odom_rad[k]), int(s.map_index[rng][k]), size, res)
+            for k in range(len(s))]
 
 
 def params(cfg: GtgenConfig) -> FuseParams:
@@ -71,78 +59,55 @@ def params(cfg: GtgenConfig) -> FuseParams:
     return FuseParams(int(round(f.window_s * 1e9)), int(round(f.past_s * 1e9)), f.min_conf, f.risk_min_conf, f.tile_cells)
 
 
-def fused_fields(rng: str) -> dict[str, str]:
-    """Return {fused-store array of range ``rng``: the ``Fused`` field it holds}."""
-    out = {f"fused/{rng}/{n}": n for n in ("confidence", "risk", "count", "last_dt_s", "region")}
-    out[f"fused/{rng}/elevation_m"] = "elevation"
-    out.update({f"xracer/{rng}/{n}": f"xr_{n}" for n in ("risk", "confidence")})
-    out[f"xracer/{rng}/elevation_m"] = "xr_elevation"
-    return out
+def _layers(f: Fused) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Return a fused sample's label layers and X-Racer layers by their store names."""
+    labels = {"elevation_m": f.elevation, "confidence": f.confidence, "risk": f.risk, "count": f.count,
+              "last_dt_s": f.last_dt_s, "region": f.region}
+    return labels, {"elevation_m": f.xr_elevation, "risk": f.xr_risk, "confidence": f.xr_confidence}
 
 
-def _fuse_part(drive_path: str, out_path: str, rng: str, lo: int, hi: int, cfg_json: dict) -> tuple[str, int, np.ndarray, np.ndarray, int]:
-    """Fuse samples [lo, hi) of range ``rng`` into the open store; a job for any worker.
+def _fuse_part(drive: DriveStore, out_path: str, rng: str, lo: int, hi: int, cfg: GtgenConfig) -> tuple[str, int, np.ndarray, np.ndarray, int]:
+    """Fuse samples [lo, hi) of range ``rng`` into the fused store being written; a job for any worker.
 
     Chunks are exact: a chunk reads every map its windows need, and the integer sums
     make the labels independent of where a chunk starts.
     """
-    import zarr
-
-    cfg = GtgenConfig.model_validate(cfg_json)
-    drive = zarr.open_group(drive_path, mode="r")
-    out = zarr.open_group(out_path, mode="r+")
+    out = FusedWriter.reopen(Path(out_path))
     grid = cfg.grids.get(rng)
-    maps = zarr_map_source(drive, rng, grid.resolution_m)
+    maps = map_source(drive, rng, grid.resolution_m)
     samples = sample_grids(drive, rng, grid.size, grid.resolution_m)[lo:hi]
-    target = {ChunkFiles(out[path]): name for path, name in fused_fields(rng).items()}
     empty = np.zeros(len(samples), bool)
     regions = np.zeros(len(codes.REGIONS), np.int64)
     for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
-        for arr, name in target.items():
-            arr.write(lo + k, getattr(f, name))
+        out.write_sample(rng, lo + k, *_layers(f))
         empty[k] = not f.count.any()
         regions += np.bincount(f.region.ravel(), minlength=len(codes.REGIONS))
     return rng, lo, empty, regions, maps.loads
 
 
-def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2) -> FuseResult:
+def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2, overwrite: bool = False) -> FuseResult:
     """Fuse the maps of drive store ``drive_path`` into the fused store ``out`` (atomically).
 
     The work is split into jobs per range and per ``fuse.chunk_samples`` samples, run on
     ``workers`` processes; the result does not depend on the split.
     """
-    with stage_output(out, reads=[drive_path]) as tmp:
-        drive = open_drive(drive_path)
-        S = int(drive["samples/t_ns"].shape[0])
+    with stage_output(out, reads=[drive_path], overwrite=overwrite) as tmp:
+        drive = DriveStore(drive_path)
+        S = drive.n_samples
         if S == 0:
             raise StoreError(f"drive store '{drive_path}' has no samples")
-        root = _create(tmp, cfg, S)
-        results = _fuse_all(drive_path, tmp, cfg, S, workers)
-        result = _summarise(out, S, results)
-        root.create_array("samples/reason", shape=(S,), dtype="uint8", chunks=(S,), fill_value=0)[:] = result.reason
-        root.attrs.update(store_attrs(
-            FUSED, gtgen_version=__version__, drive=str(drive_path.resolve()), drive_bags=drive.attrs.get("bags", []),
-            config=cfg.model_dump(mode="json"), coverage=result.coverage, rejected=result.rejected,
-        ))
+        writer = FusedWriter(tmp)
+        writer.create_grids(S, {r: cfg.grids.get(r).size for r in RANGES})
+        result = _summarise(out, S, _fuse_all(drive, tmp, cfg, S, workers))
+        writer.finish(result.reason, gtgen_version=__version__, drive=str(drive_path.resolve()), drive_bags=drive.bags,
+                      config=cfg.model_dump(mode="json"), coverage=result.coverage, rejected=result.rejected)
     return result
 
 
-def _create(tmp: Path, cfg: GtgenConfig, S: int):
-    """Create the fused store's per-sample grids, one sample per chunk."""
-    root = create_group(tmp)
-    for sp in FUSED.arrays:
-        if sp.path.startswith("samples/"):
-            continue
-        n = cfg.grids.get(sp.path.split("/")[1]).size
-        root.create_array(sp.path, shape=(S, n, n), chunks=(1, n, n), dtype=sp.dtype, fill_value=sp.fill_value(), compressors=compressors())
-    return root
-
-
-def _fuse_all(drive_path: Path, tmp: Path, cfg: GtgenConfig, S: int, workers: int) -> list[tuple]:
+def _fuse_all(drive: DriveStore, tmp: Path, cfg: GtgenConfig, S: int, workers: int) -> list[tuple]:
     """Fuse every range in jobs of ``fuse.chunk_samples`` samples (the long micro ones first)."""
-    cfg_json = cfg.model_dump(mode="json")
     step = cfg.fuse.chunk_samples
-    jobs = [(str(drive_path), str(tmp), r, lo, min(lo + step, S), cfg_json) for r in RANGES for lo in range(0, S, step)]
+    jobs = [(drive, str(tmp), r, lo, min(lo + step, S), cfg) for r in RANGES for lo in range(0, S, step)]
     with Pool(min(workers, len(jobs))) as pool:
         return list(pool.map(_fuse_part, jobs))
 

@@ -9,9 +9,11 @@ import numpy as np
 from gtgen import codes
 from gtgen.config import RANGES
 from gtgen.report.stats import REGIONS
+from gtgen.runtime.output import save_figure
+from gtgen.storage.dataset import DatasetStore
 
 
-def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
+def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwrite: bool = False) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -37,12 +39,10 @@ def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
     ax[2].set_title("samples kept / rejected by reason")
     ax[2].tick_params(axis="x", rotation=30)
     fig.tight_layout()
-    p = out_dir / "qa_overview.png"
-    fig.savefig(p, dpi=80)
+    paths.append(save_figure(fig, out_dir / "qa_overview.png", overwrite))
     plt.close(fig)
-    paths.append(p)
     if rep.card["samples_kept"]:
-        en = g["meta/crs_en_m"][:]
+        en = ds.meta("crs_en_m")
         fig, ax = plt.subplots(figsize=(6, 6))
         icp = np.isfinite(fit)
         sc = ax.scatter(en[icp, 0], en[icp, 1], c=fit[icp], cmap="viridis", vmin=0, vmax=1, s=12)
@@ -52,11 +52,9 @@ def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
         ax.set_aspect("equal")
         ax.set_title("sample positions (DEM CRS), colour = ICP fitness")
         fig.colorbar(sc)
-        p = out_dir / "qa_track.png"
-        fig.savefig(p, dpi=80)
+        paths.append(save_figure(fig, out_dir / "qa_track.png", overwrite))
         plt.close(fig)
-        paths.append(p)
-    if rep.truth:
+    if rep.truth.get("micro"):
         fig, ax = plt.subplots(figsize=(7, 4))
         for i, r in enumerate(RANGES):
             vals = [rep.truth[r][reg]["elevation_mae_m"] or 0 for reg in REGIONS.values()]
@@ -65,23 +63,21 @@ def figures(g, rep, out_dir: Path, fit, rfit, rej_reason) -> list[Path]:
         ax.set_ylabel("elevation MAE vs truth [m]")
         ax.set_title("label error against synth truth")
         ax.legend()
-        p = out_dir / "qa_label_error.png"
-        fig.savefig(p, dpi=80)
+        paths.append(save_figure(fig, out_dir / "qa_label_error.png", overwrite))
         plt.close(fig)
-        paths.append(p)
     return paths
 
 
-SIGNALS = (  # (dataset array of kept samples, of rejected ones, label, threshold key in dem config, above is bad)
-    ("meta/icp_fitness", "rejected/icp_fitness", "ICP fitness", "min_fitness", False),
-    ("meta/icp_rmse_m", "rejected/icp_rmse_m", "ICP inlier RMSE [m]", "max_rmse_m", True),
-    ("meta/dem_disagreement", "rejected/dem_disagreement", "share of ground disagreeing with the DEM", "max_disagreement", True),
-    ("meta/gnss_offset_m", "rejected/gnss_offset_m", "GNSS offset of the placed track [m]", "max_gnss_offset_m", True),
-    ("meta/vegetation_share", "rejected/vegetation_share", "share of observed cells left out as vegetation", None, True),
+SIGNALS = (  # (signal recorded per kept and per rejected sample, label, threshold key in dem config, above is bad)
+    ("icp_fitness", "ICP fitness", "min_fitness", False),
+    ("icp_rmse_m", "ICP inlier RMSE [m]", "max_rmse_m", True),
+    ("dem_disagreement", "share of ground disagreeing with the DEM", "max_disagreement", True),
+    ("gnss_offset_m", "GNSS offset of the placed track [m]", "max_gnss_offset_m", True),
+    ("vegetation_share", "share of observed cells left out as vegetation", None, True),
 )
 
 
-def signal_figure(g, dem_cfg, out_dir: Path) -> Path:
+def signal_figure(ds: DatasetStore, dem_cfg, out_dir: Path, overwrite: bool = False) -> Path:
     """Draw the distributions of the rejection signals, kept and rejected samples apart,
     with the thresholds dem-align used."""
     import matplotlib
@@ -90,9 +86,9 @@ def signal_figure(g, dem_cfg, out_dir: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(15, 7))
-    corr_k = g["meta/icp_correction"][:]
-    corr_r = g["rejected/icp_correction"][:]
-    panels = [(g[a][:], g[b][:], label, key) for a, b, label, key, _ in SIGNALS]
+    corr_k = ds.meta("icp_correction")
+    corr_r = ds.rejected("icp_correction")
+    panels = [(ds.meta(name), ds.rejected(name), label, key) for name, label, key, _ in SIGNALS]
     panels.insert(2, (np.hypot(corr_k[:, 0], corr_k[:, 1]), np.hypot(corr_r[:, 0], corr_r[:, 1]), "ICP correction xy [m]", "max_correction_m"))
     for ax, (kept, rej, label, key) in zip(axes.ravel(), panels):
         kept, rej = kept[np.isfinite(kept)], rej[np.isfinite(rej)]
@@ -105,8 +101,7 @@ def signal_figure(g, dem_cfg, out_dir: Path) -> Path:
         ax.legend(fontsize=7)
     fig.suptitle("rejection signals of every sample ICP ran on")
     fig.tight_layout()
-    p = out_dir / "qa_rejection_signals.png"
-    fig.savefig(p, dpi=80)
+    p = save_figure(fig, out_dir / "qa_rejection_signals.png", overwrite)
     plt.close(fig)
     return p
 

@@ -9,60 +9,75 @@ from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.geometry import grid_xy, yaw_transform
 from gtgen.report.stats import REGIONS, quantiles
+from gtgen.storage.dataset import DatasetStore
 
 
-def label_errors(g, cfg: GtgenConfig, truth, idx: np.ndarray) -> dict:
-    t = g["meta/t_ns"][:]
-    pos = g["meta/pos_odom_m"][:]
-    yaw = g["meta/yaw_odom_rad"][:]
-    Tct = g["meta/T_crs_target"][:]
-    acc = {r: {reg: {"elev_abs": 0.0, "n": 0, "risk_sq": 0.0, "nr": 0, "xr_abs": 0.0, "nx": 0} for reg in REGIONS.values()} for r in RANGES}
-    fused_vs_single = {r: {"fused_abs": 0.0, "single_abs": 0.0, "n": 0} for r in RANGES}
-    h_err, v_err, h_err_far = [], [], []
-    for k in idx:
-        k = int(k)
-        T_odom_target = yaw_transform(*pos[k], yaw[k])
-        T_true = truth.T_crs_odom(int(t[k])) @ T_odom_target
-        # alignment error at the vehicle and 50 m ahead
-        for pt, lst in ((np.array([0.0, 0, 0, 1]), h_err), (np.array([50.0, 0, 0, 1]), h_err_far)):
-            lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
-        v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
+class LabelErrors:
+    """Label, risk and X-Racer errors against a synthetic drive's truth, per range and
+    region, and the DEM alignment at the vehicle and 50 m ahead, accumulated over samples
+    (of one drive or several, each with its own truth)."""
+
+    def __init__(self) -> None:
+        self.acc = {r: {reg: {"elev_abs": 0.0, "n": 0, "risk_sq": 0.0, "nr": 0, "xr_abs": 0.0, "nx": 0} for reg in REGIONS.values()}
+                    for r in RANGES}
+        self.fused_vs_single = {r: {"fused_abs": 0.0, "single_abs": 0.0, "n": 0} for r in RANGES}
+        self.h_err: list[float] = []
+        self.v_err: list[float] = []
+        self.h_err_far: list[float] = []
+        self.samples = 0
+
+    def add(self, ds: DatasetStore, cfg: GtgenConfig, truth, idx: np.ndarray) -> None:
+        """Accumulate dataset samples ``idx`` (one drive, whose truth is ``truth``)."""
+        t, pos, yaw, Tct = ds.meta("t_ns"), ds.meta("pos_odom_m"), ds.meta("yaw_odom_rad"), ds.meta("T_crs_target")
+        for k in idx:
+            k = int(k)
+            T_odom_target = yaw_transform(*pos[k], yaw[k])
+            T_true = truth.T_crs_odom(int(t[k])) @ T_odom_target
+            # alignment error at the vehicle and 50 m ahead
+            for pt, lst in ((np.array([0.0, 0, 0, 1]), self.h_err), (np.array([50.0, 0, 0, 1]), self.h_err_far)):
+                lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
+            self.v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
+            for r in RANGES:
+                _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r])
+        self.samples += len(idx)
+
+    def table(self) -> dict:
+        """Return the errors as the report's JSON records them."""
+        out: dict = {"samples_evaluated": int(self.samples)}
         for r in RANGES:
-            _add_sample_errors(g, cfg, truth, k, r, T_odom_target, acc[r], fused_vs_single[r])
-    out: dict = {"samples_evaluated": int(len(idx))}
-    for r in RANGES:
-        out[r] = {}
-        for name, a in acc[r].items():
-            out[r][name] = {
-                "elevation_mae_m": round(a["elev_abs"] / a["n"], 4) if a["n"] else None,
-                "risk_mse": round(a["risk_sq"] / a["nr"], 5) if a["nr"] else None,
-                "xracer_elevation_mae_m": round(a["xr_abs"] / a["nx"], 4) if a["nx"] else None,
-                "cells": a["n"],
+            out[r] = {}
+            for name, a in self.acc[r].items():
+                out[r][name] = {
+                    "elevation_mae_m": round(a["elev_abs"] / a["n"], 4) if a["n"] else None,
+                    "risk_mse": round(a["risk_sq"] / a["nr"], 5) if a["nr"] else None,
+                    "xracer_elevation_mae_m": round(a["xr_abs"] / a["nx"], 4) if a["nx"] else None,
+                    "cells": a["n"],
+                }
+            fs = self.fused_vs_single[r]
+            out[r]["fused_vs_single_map"] = {
+                "fused_mae_m": round(fs["fused_abs"] / fs["n"], 4) if fs["n"] else None,
+                "single_map_mae_m": round(fs["single_abs"] / fs["n"], 4) if fs["n"] else None,
+                "cells": fs["n"],
             }
-        fs = fused_vs_single[r]
-        out[r]["fused_vs_single_map"] = {
-            "fused_mae_m": round(fs["fused_abs"] / fs["n"], 4) if fs["n"] else None,
-            "single_map_mae_m": round(fs["single_abs"] / fs["n"], 4) if fs["n"] else None,
-            "cells": fs["n"],
+        out["dem_alignment"] = {
+            "horizontal_at_vehicle_m": quantiles(np.asarray(self.h_err)),
+            "horizontal_50m_ahead_m": quantiles(np.asarray(self.h_err_far)),
+            "vertical_m": quantiles(np.abs(np.asarray(self.v_err))),
         }
-    out["dem_alignment"] = {
-        "horizontal_at_vehicle_m": quantiles(np.asarray(h_err)),
-        "horizontal_50m_ahead_m": quantiles(np.asarray(h_err_far)),
-        "vertical_m": quantiles(np.abs(np.asarray(v_err))),
-    }
-    return out
+        return out
 
 
-def _add_sample_errors(g, cfg: GtgenConfig, truth, k: int, r: str, T_odom_target: np.ndarray, acc: dict, fs: dict) -> None:
+def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: int, r: str, T_odom_target: np.ndarray, acc: dict,
+                       fs: dict) -> None:
     """Accumulate sample ``k``'s label, risk and X-Racer errors of range ``r`` per region."""
     gr = cfg.grids.get(r)
     X, Y = grid_xy(gr.size, gr.resolution_m)
-    ground, trisk, seen = truth.labels(T_odom_target, X, Y, int(g["meta/t_ns"][k]))
-    el = g[f"labels/{r}/elevation_m"][k]
-    reg = g[f"labels/{r}/region"][k]
-    rk = g[f"labels/{r}/risk"][k]
-    xe = g[f"xracer/{r}/elevation_m"][k]
-    xc = g[f"xracer/{r}/confidence"][k]
+    ground, trisk, seen = truth.labels(T_odom_target, X, Y, t_ns)
+    el = ds.grid("labels", r, "elevation_m")[k]
+    reg = ds.grid("labels", r, "region")[k]
+    rk = ds.grid("labels", r, "risk")[k]
+    xe = ds.grid("xracer", r, "elevation_m")[k]
+    xc = ds.grid("xracer", r, "confidence")[k]
     for code, name in REGIONS.items():
         te = ground if code == codes.UNOBS else seen  # the DEM's truth is the ground; the stack's, what it sees
         m = (reg == code) & np.isfinite(el)

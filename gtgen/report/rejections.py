@@ -23,51 +23,48 @@ from gtgen import codes
 from gtgen.config import GtgenConfig
 from gtgen.geometry import grid_xy, yaw_transform
 from gtgen.report.stats import quantiles
+from gtgen.storage.dataset import DatasetStore
 
 FOOTPRINT_STEP = 5  # every 5th short cell along each axis: enough for a share of the grid
 
 
-def _placed(g: Any) -> dict[str, np.ndarray]:
-    """Return every sample that got a placement: kept ones, then rejected ones ICP ran on or
-    set aside with a tile."""
-    rT = g["rejected/T_crs_target"][:]
-    reason = g["rejected/reason"][:]
-    has = np.isfinite(g["rejected/icp_fitness"][:]) | ((reason == codes.SUSPECT_TILE) & np.isfinite(rT[:, 0, 0]))
-    n = int(g["meta/t_ns"].shape[0])
+def _placed(ds: DatasetStore, drive: int) -> dict[str, np.ndarray]:
+    """Return every sample of drive ``drive`` that got a placement: kept ones, then rejected
+    ones ICP ran on or set aside with a tile."""
+    rT, reason, rdrive = ds.rejected("T_crs_target"), ds.rejected("reason"), ds.rejected("drive")
+    has = (rdrive == drive) & (np.isfinite(ds.rejected("icp_fitness")) | ((reason == codes.SUSPECT_TILE) & np.isfinite(rT[:, 0, 0])))
+    mine = ds.meta("drive") == drive
     return {
-        "t": np.concatenate([g["meta/t_ns"][:], g["rejected/t_ns"][:][has]]),
-        "T": np.concatenate([g["meta/T_crs_target"][:], rT[has]]),
-        "pos": np.concatenate([g["meta/pos_odom_m"][:], g["rejected/pos_odom_m"][:][has]]),
-        "yaw": np.concatenate([g["meta/yaw_odom_rad"][:], g["rejected/yaw_odom_rad"][:][has]]),
-        "reason": np.concatenate([np.zeros(n, np.uint8), reason[has]]),
+        "t": np.concatenate([ds.meta("t_ns")[mine], ds.rejected("t_ns")[has]]),
+        "T": np.concatenate([ds.meta("T_crs_target")[mine], rT[has]]),
+        "pos": np.concatenate([ds.meta("pos_odom_m")[mine], ds.rejected("pos_odom_m")[has]]),
+        "yaw": np.concatenate([ds.meta("yaw_odom_rad")[mine], ds.rejected("yaw_odom_rad")[has]]),
+        "reason": np.concatenate([np.zeros(int(mine.sum()), np.uint8), reason[has]]),
     }
 
 
-def _set_aside(attrs: Any, crs: str) -> list[tuple[float, float, float, float]]:
-    """Return the bounds (working CRS) of the DEM tiles dem-align did not use."""
+def _set_aside(entry: Any, crs: str) -> list[tuple[float, float, float, float]]:
+    """Return the bounds (working CRS) of the DEM tiles dem-align did not use for a drive."""
     import rasterio
     from rasterio.warp import transform_bounds
 
     out = []
-    for d in attrs.drives:
-        for path in d.suspect_tiles:
-            with rasterio.open(path) as ds:
-                out.append(transform_bounds(ds.crs, crs, *ds.bounds))
+    for path in entry.suspect_tiles:
+        with rasterio.open(path) as src:
+            out.append(transform_bounds(src.crs, crs, *src.bounds))
     return out
 
 
-def rejection_truth(g: Any, cfg: GtgenConfig, truth: Any, attrs: Any) -> dict[str, Any]:
-    """Return the confusion table, the reasons per class, and the placement errors of the
-    placed samples and of the GNSS fit alone."""
-    rc = cfg.report
-    p = _placed(g)
-    if not len(p["t"]):
-        return {}
-    crs = attrs.drives[0].crs
-    aside = _set_aside(attrs, crs)
+def _errors(ds: DatasetStore, cfg: GtgenConfig, truth: Any, drive: int) -> tuple[np.ndarray, ...]:
+    """Return per placed sample of drive ``drive`` its reason and its errors against the
+    truth: horizontal and vertical placement, mean DEM fill error, and the GNSS fit's alone
+    (horizontal, vertical, yaw [deg])."""
+    p = _placed(ds, drive)
+    entry = ds.info.drives[drive]
+    aside = _set_aside(entry, entry.crs)
     gs = cfg.grids.short
     X, Y = (a[::FOOTPRINT_STEP, ::FOOTPRINT_STEP] for a in grid_xy(gs.size, gs.resolution_m))
-    al = attrs.drives[0].alignment
+    al = entry.alignment
     T_gnss = yaw_transform(al["gnss_tx_m"], al["gnss_ty_m"], al["dz_dem_m"], al["gnss_yaw_rad"])
     rows = []
     for i in range(len(p["t"])):
@@ -86,21 +83,35 @@ def rejection_truth(g: Any, cfg: GtgenConfig, truth: Any, attrs: Any) -> dict[st
         G = T_gnss @ T_odom_target
         gyaw = np.degrees(abs(np.arctan2(G[1, 0] * T_true[0, 0] - G[0, 0] * T_true[1, 0], G[0, 0] * T_true[0, 0] + G[1, 0] * T_true[1, 0])))
         rows.append((h, v, wrong, float(np.hypot(*(G[:2, 3] - T_true[:2, 3]))), float(abs(G[2, 3] - T_true[2, 3])), float(gyaw)))
-    h, v, wrong, gh, gv, gy = (np.array(c) for c in zip(*rows))
+    cols = [np.array(c, np.float64) for c in zip(*rows)] if rows else [np.zeros(0)] * 6
+    return (p["reason"], p["t"], *cols)
+
+
+def rejection_truth(ds: DatasetStore, cfg: GtgenConfig, truths: dict[int, Any]) -> dict[str, Any]:
+    """Return the confusion table, the reasons per class, and the placement errors of the
+    placed samples and of the GNSS fit alone, over the drives with a truth (``truths``:
+    drive index -> its Truth)."""
+    rc = cfg.report
+    per = [_errors(ds, cfg, truth, d) for d, truth in truths.items()]
+    reason, t_placed, h, v, wrong, gh, gv, gy = (np.concatenate(c) for c in zip(*per))
+    if not len(reason):
+        return {}
     far = h > rc.bad_horizontal_m if rc.bad_horizontal_m is not None else np.zeros(len(h), bool)
     bad = far | (v > rc.bad_vertical_m) | (wrong > rc.bad_fill_m)
-    kept = p["reason"] == codes.OK
+    kept = reason == codes.OK
+    rdrive = ds.rejected("drive")
+    unplaced = np.isin(rdrive, list(truths)) & ~np.isin(ds.rejected("t_ns"), t_placed)
     return {
         "confusion": {"kept": {"good": int((kept & ~bad).sum()), "bad": int((kept & bad).sum())},
                       "rejected": {"good": int((~kept & ~bad).sum()), "bad": int((~kept & bad).sum())}},
         "bad_rejected_pct": round(100.0 * (~kept & bad).sum() / max(bad.sum(), 1), 1) if bad.any() else None,
         "good_kept_pct": round(100.0 * (kept & ~bad).sum() / max((~bad).sum(), 1), 1) if (~bad).any() else None,
-        "reasons": {cls: codes.reason_counts(p["reason"][(~kept) & sel]) for cls, sel in (("bad", bad), ("good", ~bad))},
+        "reasons": {cls: codes.reason_counts(reason[(~kept) & sel]) for cls, sel in (("bad", bad), ("good", ~bad))},
         "placement_error": {"horizontal_m": quantiles(h[kept]), "vertical_m": quantiles(v[kept])},
         "gnss_fit_alone_error": {"horizontal_m": quantiles(gh), "vertical_m": quantiles(gv), "yaw_deg": quantiles(gy)},
         "bad_by": {"horizontal": int(far.sum()), "vertical": int((v > rc.bad_vertical_m).sum()),
                    "fill": int((wrong > rc.bad_fill_m).sum())},
         "fill_error_m": {"kept": quantiles(wrong[kept]), "rejected": quantiles(wrong[~kept])},
-        "not_placed": codes.reason_counts(g["rejected/reason"][:][~np.isin(g["rejected/t_ns"][:], p["t"])]),
+        "not_placed": codes.reason_counts(ds.rejected("reason")[unplaced]),
         "bad_definition": rc.model_dump(),
     }

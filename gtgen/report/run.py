@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from gtgen import codes
-from gtgen.config import RANGES, stored_config
+from gtgen.config import RANGES
 from gtgen.report.figures import figures, signal_figure
-from gtgen.report.labels import label_errors
+from gtgen.report.labels import LabelErrors
 from gtgen.report.rejections import rejection_truth
 from gtgen.report.stats import quantiles
-from gtgen.storage.stores import open_dataset
+from gtgen.runtime.output import write_json
+from gtgen.storage.dataset import DatasetStore
 
 
 @dataclass
@@ -25,48 +26,58 @@ class Report:
     figures: list[Path] = field(default_factory=list)
 
 
-def _coverage(g, r: str, idx: np.ndarray) -> dict[str, float]:
+def _coverage(ds: DatasetStore, r: str, idx: np.ndarray) -> dict[str, float]:
     counts = np.zeros(len(codes.REGIONS), np.int64)
+    region = ds.grid("labels", r, "region")
     for k in idx:
-        counts += np.bincount(g[f"labels/{r}/region"][int(k)].ravel(), minlength=len(codes.REGIONS))
+        counts += np.bincount(region[int(k)].ravel(), minlength=len(codes.REGIONS))
     tot = max(int(counts.sum()), 1)
     return {codes.REGIONS[i]: counts[i] / tot for i in codes.REGIONS}
 
 
-def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40) -> Report:
-    """Return the report of ``dataset`` and write its JSON and PNG figures into ``out_dir``."""
-    import json
+def _spread(idx: np.ndarray, n: int) -> np.ndarray:
+    """Return at most ``n`` of the sample indices ``idx``, evenly spread."""
+    return idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), n)).astype(int))] if len(idx) else idx
 
-    g, info = open_dataset(dataset)
-    attrs = info.attrs
-    S = info.n_samples
+
+def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, overwrite: bool = False) -> Report:
+    """Return the report of ``dataset`` and write its JSON and PNG figures into ``out_dir``.
+
+    On synthetic drives, each drive's labels and placements are judged against its own
+    truth (``truth/`` beside its bags), over at most ``max_truth_samples`` samples in all."""
+    from gtgen.synth.truth import Truth
+
+    ds = DatasetStore(dataset)
+    S = ds.n_samples
     rep = Report()
-    rej_reason = g["rejected/reason"][:]
-    fit = g["meta/icp_fitness"][:] if S else np.zeros(0)
-    rfit = g["rejected/icp_fitness"][:]
-    idx = np.unique(np.linspace(0, S - 1, min(S, max_truth_samples)).astype(int)) if S else np.zeros(0, int)
-    split = g["meta/split"][:] if S else np.zeros(0)
+    rej_reason = ds.rejected("reason")
+    fit = ds.meta("icp_fitness")
+    rfit = ds.rejected("icp_fitness")
+    idx = _spread(np.arange(S), max_truth_samples)
+    split = ds.meta("split")
     rep.card = {
         "dataset": str(dataset),
         "samples_kept": S,
         "samples_kept_by_odometry": int(np.isnan(fit).sum()),  # over set-aside tiles, no ICP (dem.carry_over_m)
         "samples_rejected": {codes.reason_name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
         "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
-        "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(g, r, idx).items()} for r in RANGES} if S else {},
+        "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(ds, r, idx).items()} for r in RANGES} if S else {},
         "icp_fitness": quantiles(np.concatenate([fit, rfit[np.isfinite(rfit)]])),
-        "icp_rmse_m": quantiles(g["meta/icp_rmse_m"][:]) if S else {},
-        "alignment": attrs.drives[0].alignment if len(attrs.drives) == 1 else {},
+        "icp_rmse_m": quantiles(ds.meta("icp_rmse_m")),
+        "alignment": ds.info.drives[0].alignment if len(ds.info.drives) == 1 else {},
     }
-    bag_paths = [b.path for d in attrs.drives for b in d.bags]
-    from gtgen.synth.truth import Truth
-
-    truth = Truth.find(bag_paths)
-    cfg = stored_config(attrs.config, f"dataset '{dataset}'")
-    if truth is not None and S:
-        rep.truth = label_errors(g, cfg, truth, idx)
-    if truth is not None:
-        rep.truth["rejections"] = rejection_truth(g, cfg, truth, attrs)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rep.figures = figures(g, rep, out_dir, fit, rfit, rej_reason) + [signal_figure(g, cfg.dem, out_dir)]
-    (out_dir / "report.json").write_text(json.dumps({"card": rep.card, "truth": rep.truth}, indent=2, default=float))
+    truths = {d: t for d, entry in enumerate(ds.info.drives) if (t := Truth.find([b.path for b in entry.bags])) is not None}
+    cfg = ds.config
+    if truths and S:
+        drive = ds.meta("drive")
+        errors = LabelErrors()
+        per_drive = max(1, max_truth_samples // len(truths))
+        for d, truth in truths.items():
+            errors.add(ds, cfg, truth, _spread(np.nonzero(drive == d)[0], per_drive))
+        rep.truth = errors.table()
+        rep.truth["drives_with_truth"] = [ds.info.drives[d].name for d in truths]
+    if truths:
+        rep.truth["rejections"] = rejection_truth(ds, cfg, truths)
+    rep.figures = figures(ds, rep, out_dir, fit, rfit, rej_reason, overwrite) + [signal_figure(ds, cfg.dem, out_dir, overwrite)]
+    write_json(out_dir / "report.json", {"card": rep.card, "truth": rep.truth}, overwrite, indent=2, default=float)
     return rep

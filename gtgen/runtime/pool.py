@@ -26,12 +26,18 @@ class Pool:
 
     ``warm``, a picklable function, is run once per worker at once (it imports what the
     jobs need), so that start-up overlaps with what the caller does before the first jobs.
+    ``init`` = (function, arguments) is run once in each worker before any job (and here
+    when the pool has one worker): it sets up state the jobs share, such as large arrays
+    the workers map from files rather than receive with every job.
     """
 
-    def __init__(self, workers: int, warm: Callable[[], Any] | None = None) -> None:
+    def __init__(self, workers: int, warm: Callable[[], Any] | None = None,
+                 init: tuple[Callable[..., Any], tuple] | None = None) -> None:
         self.workers = max(1, int(workers))
         self._ex = None
         self._env: dict[str, str | None] = {}
+        if self.workers == 1 and init is not None:
+            init[0](*init[1])
         if self.workers > 1:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
@@ -40,7 +46,8 @@ class Pool:
             self._env = {k: os.environ.get(k) for k in THREAD_VARS}
             for k in THREAD_VARS:
                 os.environ.setdefault(k, "1")
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"))
+            fn, args = init if init is not None else (None, ())
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"), initializer=fn, initargs=args)
             if warm is not None:
                 for _ in range(self.workers):
                     self._ex.submit(warm)
@@ -66,6 +73,21 @@ class Pool:
         (leave it out when the jobs show their own)."""
         results = (fn(*j) for j in jobs) if self._ex is None else self._ex.map(fn, *zip(*jobs)) if jobs else iter(())
         return results if label is None else track(results, label, total=len(jobs))
+
+    def imap(self, fn: Callable[..., Any], items: list, ahead: int | None = None) -> Iterator:
+        """Yield ``fn(item)`` for each item in order, keeping at most ``ahead`` (default: two
+        per worker) submitted beyond the one yielded, so that results do not pile up."""
+        if self._ex is None:
+            yield from (fn(x) for x in items)
+            return
+        ahead = ahead or 2 * self.workers
+        pending: list[Future] = []
+        for x in items:
+            pending.append(self._ex.submit(fn, x))
+            if len(pending) > ahead:
+                yield pending.pop(0).result()
+        while pending:
+            yield pending.pop(0).result()
 
     def as_completed(self, fn: Callable[..., Any], jobs: list[tuple], label: str | None = None) -> Iterator:
         """Yield ``fn(*job)`` of every job as each finishes (in order with one worker)."""

@@ -1,10 +1,12 @@
 """Whole Zarr v3 chunks of gtgen's arrays, encoded, written, read and moved as files.
 
 Contract (the Zarr v3 specification, for the arrays gtgen creates): an array's codecs
-are ``bytes`` (little endian) then ``zstd`` (``compressors()``), its chunk keys are the
-default encoding ``c<sep>i<sep>j...`` with separator '/' or '.', and a chunk is stored as
-the zstd frame of its C-order little-endian bytes in that file of a local store. A chunk
-whose values all equal the fill value is not stored (zarr's ``write_empty_chunks`` off).
+are ``bytes`` (little endian) then ``zstd`` with its content checksum (``compressors()``),
+its chunk keys are the default encoding ``c<sep>i<sep>j...`` with separator '/' or '.',
+and a chunk is stored as the zstd frame of its C-order little-endian bytes in that file
+of a local store. A chunk whose values all equal the fill value is not stored (zarr's
+``write_empty_chunks`` off); the store's manifest (``storage/integrity.py``) tells such a
+chunk from a lost one, and the readers here take its ``check``.
 The layout is read from the array's ``zarr.json`` and checked before any file is
 touched; an array of another layout or store goes through zarr's public API instead.
 
@@ -23,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,13 +35,16 @@ import numpy as np
 from gtgen.errors import StoreError
 
 ZSTD_LEVEL = 1  # faster to write than zarr's default level, about the same size on elevation maps
+CHECKSUM = True  # each chunk carries zstd's content checksum (4 bytes): a changed byte fails its decode
+
+Check = Callable[[str, "int | None"], None]  # (chunk key, bytes read or None if absent): raises if the store is damaged
 
 
 def compressors() -> list:
-    """Return the codec of every gtgen array (zstd, ``ZSTD_LEVEL``)."""
+    """Return the codec of every gtgen array (zstd at ``ZSTD_LEVEL`` with its checksum)."""
     from zarr.codecs import ZstdCodec
 
-    return [ZstdCodec(level=ZSTD_LEVEL)]
+    return [ZstdCodec(level=ZSTD_LEVEL, checksum=CHECKSUM)]
 
 
 def encode_chunk(value: np.ndarray) -> bytes:
@@ -49,7 +55,7 @@ def encode_chunk(value: np.ndarray) -> bytes:
     v = np.ascontiguousarray(value)
     if v.dtype.byteorder == ">":
         v = v.astype(v.dtype.newbyteorder("<"))
-    return Zstd(level=ZSTD_LEVEL, checksum=False).encode(v)
+    return Zstd(level=ZSTD_LEVEL, checksum=CHECKSUM).encode(v)
 
 
 def array_json(arr: Any) -> dict | None:
@@ -67,7 +73,7 @@ def encodes_like_gtgen(codecs: list[dict], dtype: Any) -> bool:
     """Whether a zarr v3 codec list (as in ``zarr.json``) stores chunks as :func:`encode_chunk`
     makes them."""
     want = [{"name": "bytes", "configuration": {"endian": "little"}},
-            {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": False}}]
+            {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": CHECKSUM}}]
     got = [{"name": c.get("name"), "configuration": c.get("configuration", {})} for c in codecs]
     if np.dtype(dtype).itemsize == 1:  # single bytes have no endianness
         got = [c if c["name"] != "bytes" else want[0] for c in got]
@@ -91,10 +97,15 @@ def check_encoded_chunks(arr: Any) -> str:
     return sep
 
 
+def chunk_key(path: str, coords: tuple[int, ...], sep: str = "/") -> str:
+    """Return the store key of chunk ``coords`` of array ``path`` (default chunk keys, ``sep``)."""
+    return f"{path}/" + sep.join(["c", *map(str, coords)])
+
+
 def chunk_file(store: Path, path: str, coords: tuple[int, ...], sep: str = "/") -> Path:
     """Return the file of chunk ``coords`` of array ``path`` in a local zarr v3 store
     whose default chunk keys use ``sep``."""
-    return store.joinpath(path, *sep.join(["c", *map(str, coords)]).split("/"))
+    return store.joinpath(*chunk_key(path, coords, sep).split("/"))
 
 
 def make_parent(file: Path, made: set[Path] | None = None) -> None:
@@ -164,11 +175,13 @@ class ChunkFiles:
     """The rows (index along axis 0) of a gtgen array whose chunks hold one whole row each,
     read and written as chunk files of a local store, skipping zarr's per-call cost.
 
-    Arrays of any other layout or store go through zarr, with the same values.
+    Arrays of any other layout or store go through zarr, with the same values. ``check``
+    (the store's manifest check) judges each chunk file read.
     """
 
-    def __init__(self, arr: Any) -> None:
+    def __init__(self, arr: Any, check: Check | None = None) -> None:
         self.arr = arr
+        self.check = check
         self.row_shape = tuple(int(n) for n in arr.shape[1:])
         self.dtype = np.dtype(arr.dtype)
         self.fill = arr.fill_value
@@ -187,8 +200,11 @@ class ChunkFiles:
         """Whether rows are read and written as files."""
         return self.sep is not None
 
+    def _key(self, k: int) -> str:
+        return chunk_key(self.arr.path, (int(k),) + (0,) * len(self.row_shape), self.sep or "/")
+
     def _file(self, k: int) -> Path:
-        return chunk_file(self.root, self.arr.path, (int(k),) + (0,) * len(self.row_shape), self.sep)
+        return self.root.joinpath(*self._key(k).split("/"))
 
     def encoded(self, k: int) -> Encoded | np.ndarray:
         """Return row ``k`` as stored (Encoded), or its values where the layout is not direct."""
@@ -198,6 +214,8 @@ class ChunkFiles:
             data = self._file(k).read_bytes()
         except FileNotFoundError:
             data = None
+        if self.check is not None:
+            self.check(self._key(k), None if data is None else len(data))
         return Encoded(data, self.dtype, (1, *self.row_shape), self.fill)
 
     def read(self, k: int) -> np.ndarray:
@@ -315,8 +333,9 @@ class RangeReader:
     chunk; zarr where the layout or store differs. Why: one zarr call costs about 3 ms of
     its event loop, a sixth of what ShardDataset spends on a sample."""
 
-    def __init__(self, arr: Any) -> None:
+    def __init__(self, arr: Any, check: Check | None = None) -> None:
         self.arr = arr
+        self.check = check
         self.sep: str | None = None
         root = getattr(arr.store, "root", None)
         if root is not None and tuple(arr.chunks[1:]) == tuple(arr.shape[1:]):
@@ -330,11 +349,13 @@ class RangeReader:
 
     def _chunk(self, i: int) -> np.ndarray:
         if self._last is None or self._last[0] != i:
-            file = chunk_file(self.root, self.arr.path, (i,) + (0,) * (self.arr.ndim - 1), self.sep)
+            key = chunk_key(self.arr.path, (i,) + (0,) * (self.arr.ndim - 1), self.sep)
             try:
-                data = file.read_bytes()
+                data = self.root.joinpath(*key.split("/")).read_bytes()
             except FileNotFoundError:
                 data = None
+            if self.check is not None:
+                self.check(key, None if data is None else len(data))
             self._last = (i, Encoded(data, np.dtype(self.arr.dtype), (self.c, *self.arr.shape[1:]), self.arr.fill_value).decode())
         return self._last[1]
 

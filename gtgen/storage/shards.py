@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from gtgen.storage.chunks import array_json, chunk_file, encodes_like_gtgen
+from gtgen.storage.chunks import array_json, chunk_file, chunk_key, encodes_like_gtgen
 
 _EMPTY = 2**64 - 1
 
@@ -101,10 +101,12 @@ def write_shard(file: Path, chunks: list[bytes | memoryview | None]) -> None:
         f.writelines(parts)
 
 
-def copy_samples(src: Any, src_root: Path, dst: Any, dst_root: Path, path: str, off: int, n: int) -> bool:
-    """Copy samples [0, n) of array ``path`` of store ``src`` to [off, off + n) of ``dst``
-    as encoded bytes; return False (copying nothing) if the two layouts differ."""
-    a, b = src[path], dst[path]
+def copy_samples(a: Any, src_root: Path, dst: Any, dst_root: Path, path: str, off: int, n: int, check: Any = None) -> bool:
+    """Copy samples [0, n) of array ``a`` (at ``path`` in the store at ``src_root``) to
+    [off, off + n) of ``dst``'s array ``path`` as encoded bytes; return False (copying
+    nothing) if the two layouts differ. ``check(key, nbytes)`` judges each source shard
+    file (the source store's manifest check)."""
+    b = dst[path]
     layout = sample_layout(a)
     if layout is None or layout != sample_layout(b) or a.shape[0] < n or b.shape[0] < off + n:
         return False
@@ -116,7 +118,10 @@ def copy_samples(src: Any, src_root: Path, dst: Any, dst_root: Path, path: str, 
         for g in range(max(off, k * K), min(off + n, (k + 1) * K)):
             s = g - off
             if cache[0] != s // K:
-                cache = (s // K, read_shard(shard_file(src_root, path, s // K, a.ndim), K))
+                file = shard_file(src_root, path, s // K, a.ndim)
+                if check is not None:
+                    check(chunk_key(path, (s // K,) + (0,) * (a.ndim - 1)), file.stat().st_size if file.is_file() else None)
+                cache = (s // K, read_shard(file, K))
             chunks[g - k * K] = cache[1][s % K]
         write_shard(out, chunks)
     return True
@@ -132,8 +137,11 @@ class SampleReader:
     ``tests/test_format.py`` (every sample equals zarr's).
     """
 
-    def __init__(self, arr: Any) -> None:
+    def __init__(self, arr: Any, check: Any = None, check_size: Any = None) -> None:
+        """``check(key, nbytes)`` judges a shard file read whole or found missing and
+        ``check_size(key)`` one read in part (the store's manifest checks)."""
         self.arr = arr
+        self.check, self.check_size = check, check_size
         layout = sample_layout(arr)
         root = getattr(arr.store, "root", None)
         self.fast = layout is not None and root is not None and chunks_like_gtgen(layout, arr.dtype)
@@ -146,9 +154,14 @@ class SampleReader:
     def _entries(self, s: int) -> np.ndarray | None:
         if s not in self._index:
             file = shard_file(self.root, self.path, s, self.ndim)
+            key = chunk_key(self.path, (s,) + (0,) * (self.ndim - 1))
             if not file.is_file():
+                if self.check is not None:
+                    self.check(key, None)
                 self._index[s] = None
             else:
+                if self.check_size is not None:
+                    self.check_size(key)
                 import google_crc32c
 
                 with open(file, "rb") as f:

@@ -1,15 +1,36 @@
-"""The one way to open each kind of store, and the attributes every store carries."""
+"""The one way to open and to write each kind of store, and the checks every read passes.
+
+A complete store is opened read-only as its typed accessor (``DriveStore``,
+``FusedStore``, ``DatasetStore``: ``storage/drive.py``, ``fused.py``, ``dataset.py``),
+which validates its kind, version and completeness and reads its manifest
+(``storage/integrity.py``). Every read goes through :class:`Store`: zarr reads through a
+:class:`CheckedStore`, the fast chunk and shard readers with the manifest's check, and
+any failure to read or decode becomes one :class:`~gtgen.storage.integrity.DamagedStoreError`
+line naming the array, its rows and the command that rebuilds the store. Stages ask the
+accessors for poses, maps, samples and labels by name; no stage outside ``storage/``
+opens a zarr group or spells an array path.
+
+A store is written under its stage's partial output (``runtime/output.py``) through a
+:class:`StoreWriter`, whose ``complete`` writes the attributes and then the manifest.
+"""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
-from gtgen.errors import StoreError
+import numpy as np
+from numpy.typing import NDArray
+
+from gtgen.errors import GtgenError, StoreError
 from gtgen.runtime.output import partial_path
-from gtgen.storage.schema import DATASET, DRIVE, FUSED, DatasetAttrs, StoreFormat
+from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
+from gtgen.storage.integrity import MANIFEST, DamagedStoreError, Manifest, Where, rows_text, write_manifest
+from gtgen.storage.schema import StoreFormat
+from gtgen.storage.shards import SampleReader
+from gtgen.storage.specs import ArraySpec, dimension_names
 
 
 def jsonable(obj: Any) -> Any:
@@ -22,82 +43,284 @@ def store_attrs(fmt: StoreFormat, **attrs: Any) -> dict[str, Any]:
     return jsonable({"store": fmt.kind, "version": fmt.version, "complete": True, **attrs})
 
 
-def create_group(path: Path) -> Any:
-    """Return a new, empty zarr group at ``path`` (a stage's partial output)."""
+def _checked_store_class() -> type:
+    from zarr.storage import LocalStore
+
+    class CheckedStore(LocalStore):
+        """A read-only local zarr store whose every chunk read is checked against the
+        store's manifest: a listed chunk that is missing or of another size raises
+        DamagedStoreError instead of reading as fill."""
+
+        def __init__(self, root: Path, manifest: Manifest) -> None:
+            super().__init__(str(root), read_only=True)
+            self.manifest = manifest
+
+        async def get(self, key: str, prototype: Any, byte_range: Any = None) -> Any:
+            if byte_range is not None and key in self.manifest.files:
+                self.manifest.check_size(key)
+            buf = await super().get(key, prototype, byte_range)
+            if byte_range is None:
+                self.manifest.check(key, None if buf is None else len(buf))
+            return buf
+
+        def __reduce__(self) -> tuple:
+            return (_reopen_checked, (str(self.root), self.manifest.where))
+
+    return CheckedStore
+
+
+_CHECKED: type | None = None
+
+
+def checked_store(root: Path, manifest: Manifest) -> Any:
+    """Return a read-only zarr store of ``root`` whose chunk reads ``manifest`` checks."""
+    global _CHECKED
+    if _CHECKED is None:
+        _CHECKED = _checked_store_class()
+    return _CHECKED(root, manifest)
+
+
+def _reopen_checked(root: str, where: Where) -> Any:
+    return checked_store(Path(root), Manifest(Path(root), where))
+
+
+def _name(fmt: StoreFormat) -> str:
+    return fmt.kind.removeprefix("gtgen-")
+
+
+def complete_attrs(path: Path, fmt: StoreFormat) -> dict[str, Any]:
+    """Return the attributes of the complete store of ``fmt`` at ``path``, or raise
+    StoreError saying why it is not one and which command makes one."""
     import zarr
 
-    return zarr.open_group(str(path), mode="w")
-
-
-def open_store(path: Path, fmt: StoreFormat, mode: str = "r") -> Any:
-    """Return the zarr group of a complete store of ``fmt`` at ``path``, or raise StoreError
-    saying why not and which command makes one."""
-    import zarr
-
-    name = fmt.kind.removeprefix("gtgen-")
+    name = _name(fmt)
     if not path.exists():
         hint = " (a run that did not finish left only a .partial store)" if partial_path(path).exists() else ""
         raise StoreError(f"{name} store '{path}' does not exist{hint}; run '{fmt.made_by}' first")
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     except Exception as err:  # noqa: BLE001 - zarr raises several types for non-stores
         raise StoreError(f"'{path}' is not a zarr store: {err}".splitlines()[0]) from err
-    attrs = g.attrs.asdict()
     if attrs.get("store") != fmt.kind:
         raise StoreError(f"'{path}' is not a gtgen {name} store (store={attrs.get('store')!r}, expected {fmt.kind!r})")
     if attrs.get("version") != fmt.version:
-        raise StoreError(f"{name} store '{path}' has version {attrs.get('version')}; this gtgen reads version {fmt.version}: "
-                         f"re-run '{fmt.made_by}'")
+        raise StoreError(f"{name} store '{path}' has version {attrs.get('version')}; this gtgen reads version "
+                         f"{fmt.version}: re-run '{fmt.made_by}'")
     if not attrs.get("complete"):
         raise StoreError(f"{name} store '{path}' is incomplete; re-run '{fmt.made_by}'")
-    return g
+    return attrs
 
 
-def open_drive(path: Path) -> Any:
-    """Return the zarr group of a complete drive store."""
-    return open_store(path, DRIVE)
+class Store:
+    """A complete store of one format, opened read-only, every read checked.
+
+    Subclasses set ``fmt`` and add the typed reads of their kind; ``group`` is the zarr
+    group over the checked store, for tools that read arrays by path (xarray, tests).
+    """
+
+    fmt: ClassVar[StoreFormat]
+
+    def __init__(self, path: Path) -> None:
+        import zarr
+
+        self.path = Path(path)
+        self.name, self.where = _name(self.fmt), Where(_name(self.fmt), self.path, self.fmt.made_by)
+        self.attrs: dict[str, Any] = complete_attrs(self.path, self.fmt)
+        self.manifest = Manifest(self.path, self.where)
+        self.manifest.check_metadata()
+        self.group = zarr.open_group(checked_store(self.path, self.manifest), mode="r")
+        self._arrays: dict[str, Any] = {}
+
+    def __reduce__(self) -> tuple:
+        return (_reopen, (type(self), str(self.path)))
+
+    def array(self, path: str) -> Any:
+        """Return the zarr array ``path`` (checked reads)."""
+        if path not in self._arrays:
+            try:
+                self._arrays[path] = self.group[path]
+            except KeyError:
+                raise self.where.damaged(f"array '{path}' is missing") from None
+            except GtgenError:
+                raise
+            except Exception as err:  # noqa: BLE001 - zarr raises several types for bad metadata
+                raise self.where.damaged(f"array '{path}' cannot be opened ({err})".splitlines()[0]) from err
+        return self._arrays[path]
+
+    def shape(self, path: str) -> tuple[int, ...]:
+        """Return the shape of array ``path``."""
+        return tuple(int(n) for n in self.array(path).shape)
+
+    def read(self, path: str, rows: Any = None) -> NDArray:
+        """Return array ``path`` whole, or its ``rows`` (a slice, or sorted indices: one
+        zarr call for all of them, a slice when consecutive). The chunk files the read
+        needs are checked against the manifest first."""
+        arr = self.array(path)
+        n0 = int(arr.shape[0]) if arr.ndim else 0
+        per = int((getattr(arr, "shards", None) or arr.chunks)[0]) if arr.ndim else 1
+        if rows is None:
+            sel: Any = ...
+            first: Any = range((n0 + per - 1) // per)
+        elif isinstance(rows, slice):
+            sel = rows
+            a, b, _ = rows.indices(n0)
+            first = range(a // per, (b - 1) // per + 1) if b > a else range(0)
+        else:
+            sel = np.asarray(rows)
+            first = np.unique(sel // per).tolist()
+        self.manifest.check_rows(path, first)
+        try:
+            if not isinstance(sel, np.ndarray):
+                return arr[sel]
+            if len(sel) and np.all(np.diff(sel) == 1):
+                return arr[int(sel[0]) : int(sel[-1]) + 1]
+            return arr.get_orthogonal_selection((sel,))
+        except GtgenError:
+            raise
+        except Exception as err:  # noqa: BLE001 - zstd, zarr and numpy raise several kinds
+            raise self.damaged(path, rows, err) from err
+
+    def rows(self, path: str) -> Rows:
+        """Return a reader of array ``path`` one row (axis-0 index) at a time."""
+        return Rows(self, path)
+
+    def ranges(self, path: str) -> Callable[[int, int], NDArray]:
+        """Return ``f(a, b)`` -> rows a to b of array ``path`` (chunked along axis 0 only)."""
+        reader = RangeReader(self.array(path), check=self.manifest.check)
+
+        def get(a: int, b: int) -> NDArray:
+            try:
+                return reader(a, b)
+            except GtgenError:
+                raise
+            except Exception as err:  # noqa: BLE001 - zstd raises several kinds
+                raise self.damaged(path, slice(a, b), err) from err
+
+        return get
+
+    def damaged(self, path: str, rows: Any, err: BaseException) -> DamagedStoreError:
+        """Return the error for a read of ``rows`` of array ``path`` that failed with ``err``."""
+        where = ""
+        if isinstance(rows, slice) and rows.start is not None:
+            where = " " + rows_text(self.manifest.axis(path)[1], int(rows.start), int(rows.stop or rows.start + 1) - 1)
+        elif rows is not None and not isinstance(rows, slice) and len(np.atleast_1d(rows)):
+            r = np.atleast_1d(rows)
+            where = " " + rows_text(self.manifest.axis(path)[1], int(r.min()), int(r.max()))
+        return self.where.damaged(f"array '{path}'{where} cannot be read ({type(err).__name__}: {err})".splitlines()[0])
 
 
-def open_fused(path: Path) -> Any:
-    """Return the zarr group of a complete fused store."""
-    return open_store(path, FUSED)
+_OPENED: dict[tuple[type, str], tuple[tuple[int, int], Store]] = {}
 
 
-@dataclass(frozen=True)
-class DatasetInfo:
-    """A dataset's sizes and its validated attributes."""
-
-    path: Path
-    n_samples: int
-    micro: int
-    short: int
-    image_hw: tuple[int, int]
-    attrs: DatasetAttrs
-
-
-def open_dataset(path: Path) -> tuple[Any, DatasetInfo]:
-    """Return (zarr group, info) of a complete dataset, or raise StoreError saying why not."""
-    from pydantic import ValidationError
-
-    g = open_store(path, DATASET)
+def _reopen(cls: type, path: str) -> Store:
+    """Return the store ``cls`` at ``path`` for a process that received it pickled: opened
+    once per process (and again if the store was written anew since)."""
     try:
-        attrs = DatasetAttrs.model_validate(g.attrs.asdict())
-    except ValidationError as err:
-        raise StoreError(f"dataset '{path}' has attributes this gtgen does not read ({err.errors()[0]['loc']}); "
-                         f"re-run '{DATASET.made_by}'") from err
-    S = int(g["meta/t_ns"].shape[0])
-    img = g["inputs/images"].shape
-    return g, DatasetInfo(path, S, int(g["labels/micro/region"].shape[1]), int(g["labels/short/region"].shape[1]),
-                          (int(img[2]), int(img[3])), attrs)
+        st = (Path(path) / MANIFEST / "zarr.json").stat()
+        stamp = (st.st_mtime_ns, st.st_size)
+    except OSError:
+        stamp = (0, 0)
+    hit = _OPENED.get((cls, path))
+    if hit is None or hit[0] != stamp:
+        if len(_OPENED) > 8:
+            _OPENED.clear()
+        hit = (stamp, cls(Path(path)))
+        _OPENED[(cls, path)] = hit
+    return hit[1]
 
 
-def read_rows(arr: Any, rows: Any) -> Any:
-    """Return ``arr[rows]`` for sorted sample indices ``rows``, in one zarr call (a slice
-    when they are consecutive): one call per block instead of one per sample, each of
-    which costs about 2 ms of zarr's event loop."""
-    import numpy as np
+class Rows:
+    """Rows (axis-0 indices) of one array of a store, each read from its chunk or shard
+    file where the layout allows (no zarr call; ``storage/chunks.py``, ``shards.py``),
+    else through zarr; checked against the store's manifest."""
 
-    rows = np.asarray(rows)
-    if len(rows) and np.all(np.diff(rows) == 1):
-        return arr[int(rows[0]):int(rows[-1]) + 1]
-    return arr.get_orthogonal_selection((rows,))
+    def __init__(self, store: Store, path: str) -> None:
+        arr = store.array(path)
+        self.store, self.path = store, path
+        check = store.manifest.check
+        if getattr(arr, "shards", None):
+            self._shard: SampleReader | None = SampleReader(arr, check=check, check_size=store.manifest.check_size)
+            self._files: ChunkFiles | None = None
+        else:
+            self._shard, self._files = None, ChunkFiles(arr, check=check)
+
+    def __getitem__(self, k: int) -> NDArray:
+        try:
+            return self._shard[int(k)] if self._shard is not None else self._files.read(int(k))  # type: ignore[union-attr]
+        except GtgenError:
+            raise
+        except Exception as err:  # noqa: BLE001 - zstd and numpy raise several kinds
+            raise self.store.damaged(self.path, [int(k)], err) from err
+
+    def encoded(self, k: int) -> Any:
+        """Return row ``k`` as stored (``chunks.Encoded``) where it is a chunk file, else its values."""
+        if self._files is not None and self._files.direct:
+            return self._files.encoded(int(k))
+        return self[k]
+
+
+class StoreWriter:
+    """A store of one format being written at ``path`` (a stage's partial output).
+
+    ``create`` makes arrays from the format's specs; ``complete`` writes the attributes
+    (marking the store complete) and then the manifest of what the store holds.
+    """
+
+    fmt: ClassVar[StoreFormat]
+
+    def __init__(self, path: Path, new: bool = True) -> None:
+        import zarr
+
+        self.path = Path(path)
+        self.root = zarr.open_group(str(self.path), mode="w" if new else "r+")
+
+    def spec(self, path: str) -> ArraySpec:
+        """Return the spec of array ``path`` of this format."""
+        return self.fmt.spec(path)
+
+    def create(self, path: str, shape: tuple[int, ...], chunks: tuple[int, ...] | None = None,
+               shards: tuple[int, ...] | None = None, flat: bool = False, **kw: Any) -> Any:
+        """Create array ``path`` with its spec's dtype, fill and dimension names and gtgen's
+        codec; ``flat`` keys its chunks 'c.i.j...' (one folder)."""
+        sp = self.spec(path)
+        chunks = chunks or tuple(max(1, int(s)) for s in shape)
+        keys = {"name": "default", "separator": "." if flat else "/"}
+        return self.root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, shards=shards,
+                                      fill_value=sp.fill_value(), compressors=compressors(), chunk_key_encoding=keys,
+                                      dimension_names=dimension_names(sp), **kw)
+
+    def write(self, path: str, value: Any, chunks: tuple[int, ...] | None = None) -> Any:
+        """Create array ``path`` holding ``value`` whole."""
+        value = np.asarray(value)
+        arr = self.create(path, value.shape, chunks)
+        if value.size:
+            arr[...] = value
+        return arr
+
+    def complete(self, **attrs: Any) -> None:
+        """Write the attributes (the store is complete from here on) and the manifest."""
+        self.root.attrs.update(store_attrs(self.fmt, **attrs))
+        write_manifest(self.path)
+
+
+def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
+    """Check the store at ``path`` whole (any gtgen kind): every file the manifest lists,
+    every metadata checksum, every chunk decoded. Return (its format, files listed,
+    problems); raise StoreError if it is not a complete gtgen store at all."""
+    from gtgen.storage.integrity import verify
+    from gtgen.storage.schema import FORMATS
+
+    try:
+        kind = json.loads((Path(path) / "zarr.json").read_text()).get("attributes", {}).get("store")
+    except (OSError, ValueError, AttributeError) as err:
+        raise StoreError(f"'{path}' is not a gtgen store (no readable zarr.json)") from err
+    fmt = FORMATS.get(kind)
+    if fmt is None:
+        raise StoreError(f"'{path}' is not a gtgen store (store={kind!r}; expected one of {sorted(FORMATS)})")
+    complete_attrs(Path(path), fmt)
+    where = Where(_name(fmt), Path(path), fmt.made_by)
+    try:
+        m = Manifest(Path(path), where)
+        return fmt, len(m.files) + len(m.metadata), verify(Path(path), where)
+    except DamagedStoreError as err:
+        return fmt, 0, [str(err)]

@@ -17,6 +17,7 @@ from gtgen.config import GtgenConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
 from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
 from gtgen.runtime.output import stage_output
+from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
 from gtgen.synth import sensors
 from gtgen.synth.drive import gnss_errors, gnss_outage
@@ -257,7 +258,7 @@ class _Ticker:
             named = {names.elevation: layers.elevation, names.risk: layers.risk, names.confidence: layers.confidence}
             self._msg(
                 out, tp.map_topic(rng_name), "grid_map_msgs/msg/GridMap", t + MAP_LATENCY_NS,
-                lambda f: f.gridmap(t, tp.odom_frame, grid.resolution_m, center, named, start, m),
+                lambda f, res=grid.resolution_m, center=center, named=named, start=start: f.gridmap(t, tp.odom_frame, res, center, named, start, m),
             )
 
     def _voxel_map(self, out: list, k: int, view: sensors.LidarView) -> None:
@@ -286,45 +287,47 @@ class _Ticker:
             jpeg = buf.getvalue()
             frame = camera_frame(c)
             seq = k // self.cam_p
-            self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f: f.compressed_image(t, frame, jpeg, seq))
-            self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
+            self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f, frame=frame, jpeg=jpeg, seq=seq: f.compressed_image(t, frame, jpeg, seq))
+            self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f, frame=frame, seq=seq: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
 
 
-_TICKER: _Ticker | None = None
+_TICKER: _Ticker | None = None  # the worker's ticker, made by _start_worker
+
+
+def _start_worker(cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster) -> None:
+    """Make this worker's ticker (its world and raster map their large arrays from files)."""
+    global _TICKER
+    _TICKER = _Ticker(cfg, world, raster, cfg.synth.formats)
 
 
 def _tick_chunk(ks: range) -> list:
-    assert _TICKER is not None
+    if _TICKER is None:
+        raise GtgenError("synth worker without a ticker: the pool was started without _start_worker")
     return [m for k in ks for m in _TICKER.tick(k)]
 
 
 def _simulate(cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster, sinks: _Sinks) -> None:
-    global _TICKER
+    """Tick the drive on the process pool, writing every message in tick order. The
+    terrain's tile pool and the render raster reach the workers as files they map (not
+    as pickles of hundreds of MB each)."""
     ticker = _Ticker(cfg, world, raster, cfg.synth.formats)
     for topic, msgtype, t_rec, blobs in ticker.static_messages():
         sinks.write_raw(topic, msgtype, t_rec, blobs)
     chunk = 5
     chunks = [range(i, min(i + chunk, ticker.n)) for i in range(0, ticker.n, chunk)]
     workers = min(cfg.synth.workers, len(chunks))
-    if workers <= 1:
-        _TICKER = ticker
-        results = map(_tick_chunk, chunks)
-        pool = None
-    else:
-        import multiprocessing as mp
-
-        _TICKER = ticker  # inherited by the forked workers
-        pool = mp.get_context("fork").Pool(workers)
-        results = pool.imap(_tick_chunk, chunks)
+    if workers > 1:
+        world.terrain.share(sinks.tmp / "shared")
+        raster.share(sinks.tmp / "shared")
+    global _TICKER
     try:
-        for msgs in track(results, "synth: simulating drive", total=len(chunks)):
-            for topic, msgtype, t_rec, blobs in msgs:
-                sinks.write_raw(topic, msgtype, t_rec, blobs)
+        with Pool(workers, init=(_start_worker, (cfg, world, raster))) as pool:
+            for msgs in track(pool.imap(_tick_chunk, chunks), "synth: simulating drive", total=len(chunks)):
+                for topic, msgtype, t_rec, blobs in msgs:
+                    sinks.write_raw(topic, msgtype, t_rec, blobs)
     finally:
-        _TICKER = None
-        if pool is not None:
-            pool.terminate()
-            pool.join()
+        _TICKER = None  # set here when the pool has one worker
+        shutil.rmtree(sinks.tmp / "shared", ignore_errors=True)
 
 
 def _write_truth(cfg: GtgenConfig, world: SynthWorld, folder: Path) -> None:

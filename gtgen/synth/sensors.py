@@ -9,6 +9,7 @@ and the maximum range. Everything is vectorised over samples.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -211,6 +212,25 @@ class RenderRaster:
                 self.layers[0, i : i + bu, j : j + bv] = g["surface"]
                 self.layers[1, i : i + bu, j : j + bv] = g["ground"]
                 self.layers[2, i : i + bu, j : j + bv] = g["bare"]
+
+    def share(self, folder: Path) -> None:
+        """Put the raster in a file of ``folder``, so that a pickle of it names the file and
+        each process that unpickles it maps the raster read-only."""
+        folder.mkdir(parents=True, exist_ok=True)
+        self._file = str(folder / "render_raster.npy")
+        np.save(self._file, self._padded)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if getattr(self, "_file", None):
+            state["_padded"] = state["layers"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._padded is None:
+            self._padded = np.load(self._file, mmap_mode="r")
+            self.layers = self._padded[:, 1:-1, 1:-1]
 
     def lookup(self, u: NDArray, v: NDArray, layer: int) -> NDArray[np.float32]:
         """Return the nearest raster value of ``layer`` at (u, v) relative to (u0, v0); -inf outside."""

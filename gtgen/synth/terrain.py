@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -160,7 +161,29 @@ class Terrain:
         self._ditch_width = rng.uniform(0.4, 0.8, nd)
         self._tiles: OrderedDict[tuple[int, int], int] = OrderedDict()  # tile key -> pool slot
         self._pool: NDArray[np.float32] | None = None  # (max_tiles, n, n, layers), made on first use
+        self._pool_file: str | None = None  # where the pool lies for other processes (``share``)
         self.max_tiles = 112
+
+    def share(self, folder: Path) -> None:
+        """Put the evaluated tiles in a file of ``folder``, so that a pickle of this terrain
+        names the file and each process that unpickles it maps the tiles (copy on write)
+        instead of receiving them or evaluating them again."""
+        if self._pool is None:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        self._pool_file = str(folder / "terrain_tiles.npy")
+        np.save(self._pool_file, self._pool)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if self._pool_file is not None:
+            state["_pool"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._pool_file is not None and self._pool is None:
+            self._pool = np.load(self._pool_file, mmap_mode="c")
 
     # -- exact evaluation on regular grids -------------------------------------------
     def smooth(self, u: NDArray, v: NDArray) -> NDArray[np.float64]:

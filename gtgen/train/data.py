@@ -15,12 +15,11 @@ from numpy.typing import NDArray
 from torch.utils.data import Dataset
 
 from gtgen import codes
-from gtgen.config import TrainConfig, stored_config
+from gtgen.config import TrainConfig
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
-from gtgen.storage.chunks import RangeReader
-from gtgen.storage.shards import SampleReader
-from gtgen.storage.stores import open_dataset
+from gtgen.storage.dataset import DatasetStore
+
 
 def nearest_index(src_size: int, dst_size: int) -> NDArray[np.int64]:
     """Return, per destination cell, the source cell containing its centre (same extent)."""
@@ -176,29 +175,29 @@ class ShardDataset(Dataset):
     """
 
     def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int = 60000) -> None:
-        g, info = open_dataset(path)
-        if info.n_samples == 0:
+        store = DatasetStore(path)
+        if store.n_samples == 0:
             raise TrainError(f"dataset '{path}' has no samples; nothing to train or evaluate on")
         self.path = path
         self.tc = tc
-        self.data_cfg = stored_config(info.attrs.config, f"dataset '{path}'")
-        self.info = info
-        idx = np.arange(info.n_samples)
+        self.data_cfg = store.config
+        self.store = store
+        idx = np.arange(store.n_samples)
         if split is not None:
             code = codes.split_code(split)
-            idx = idx[g["meta/split"][:] == code]
+            idx = idx[store.meta("split") == code]
         self.indices = idx
         self.max_points = max_points
-        self._g = None
-        self._offsets = g["inputs/voxel_offsets"][:]
-        self._ix = {r: nearest_index(getattr(info, r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
-        W_in, H_in = info.attrs.image_size
+        self._r: dict | None = None
+        self._offsets = store.voxel_offsets()
+        self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
+        W_in, H_in = store.info.image_size
         self._img_ix = (nearest_index(H_in, tc.image_height), nearest_index(W_in, tc.image_width))
         self._img_src = (W_in, H_in)
         # smoothing window of each range's prior, in that range's model cells (odd)
         grids = self.data_cfg.grids
         cells = {r: grids.get(r).length_m / getattr(tc, f"{r}_size") for r in ("micro", "short")}
-        cells["centre"] = grids.short.length_m / info.short  # the stored raw grid's own cells
+        cells["centre"] = grids.short.length_m / store.size("short")  # the stored raw grid's own cells
         self._prior_win = {r: 2 * int(round(0.5 * tc.prior_window_m / c)) + 1 for r, c in cells.items()}
 
     def _scaled(self, grid: NDArray) -> torch.Tensor:
@@ -215,17 +214,20 @@ class ShardDataset(Dataset):
     def __len__(self) -> int:
         return len(self.indices)
 
-    def _group(self) -> dict[str, Any]:
-        """Return the dataset's arrays by name, opened lazily in each DataLoader worker (one
-        group lookup per array, not per read)."""
-        if self._g is None:
-            g, _ = open_dataset(self.path)
-            names = ["inputs/images", "inputs/K", "inputs/T_target_base", "inputs/T_base_cam", "inputs/voxel_points_m", "inputs/raw_elevation_m"]
-            names += [f"{grp}/{r}/{a}" for r in ("micro", "short") for grp, a in
-                      (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"), ("xracer", "risk"))]
-            # no zarr call per read: per-sample arrays through SampleReader, the flat points through RangeReader
-            self._g = {n: RangeReader(g[n]) if n == "inputs/voxel_points_m" else SampleReader(g[n]) for n in names}
-        return self._g
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_r": None}  # each DataLoader worker makes its own readers
+
+    def _readers(self) -> dict[Any, Any]:
+        """Return the readers of the arrays a sample needs, made lazily in each DataLoader
+        worker (per-sample arrays one shard-file read each, the flat points by range)."""
+        if self._r is None:
+            st = self.store
+            self._r = {n: st.inputs(n) for n in ("images", "K", "T_target_base", "T_base_cam", "raw_elevation_m")}
+            self._r["points"] = st.voxel_points()
+            self._r.update({(kind, r, a): st.grid(kind, r, a) for r in ("micro", "short") for kind, a in
+                            (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"),
+                             ("xracer", "risk"))})
+        return self._r
 
     def _images(self, raw: NDArray[np.uint8]) -> NDArray[np.uint8]:
         """Return the cameras' images (n, H, W, 3 uint8) at the model's size, as (n, 3, h, w)
@@ -241,33 +243,33 @@ class ShardDataset(Dataset):
         return arr[np.ix_(ix, ix)]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        g = self._group()
+        g = self._readers()
         k = int(self.indices[i])
         tc = self.tc
         out: dict[str, torch.Tensor] = {"index": torch.tensor(k)}
-        out["images"] = torch.from_numpy(self._images(g["inputs/images"][k]))
-        K = np.stack([rescale_K(Kc, self._img_src, (tc.image_width, tc.image_height)) for Kc in g["inputs/K"][k]])
+        out["images"] = torch.from_numpy(self._images(g["images"][k]))
+        K = np.stack([rescale_K(Kc, self._img_src, (tc.image_width, tc.image_height)) for Kc in g["K"][k]])
         out["K"] = torch.from_numpy(K.astype(np.float32))
-        T = g["inputs/T_target_base"][k] @ g["inputs/T_base_cam"][k]
+        T = g["T_target_base"][k] @ g["T_base_cam"][k]
         out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))
         a, b = self._offsets[k], self._offsets[k + 1]
-        pts = g["inputs/voxel_points_m"](a, b)
+        pts = g["points"](a, b)
         if len(pts) > self.max_points:
             pts = pts[np.linspace(0, len(pts) - 1, self.max_points).astype(np.int64)]
         padded = np.zeros((self.max_points, 3), np.float32)
         padded[: len(pts)] = pts
         out["points"] = torch.from_numpy(padded)
         out["n_points"] = torch.tensor(len(pts))
-        raw_s = g["inputs/raw_elevation_m"][k]
+        raw_s = g["raw_elevation_m"][k]
         raw = self._grid(raw_s, "short")
         out["raw"] = self._scaled(raw)
         for r in ("micro", "short"):
-            el = self._grid(g[f"labels/{r}/elevation_m"][k], r)
+            el = self._grid(g[("labels", r, "elevation_m")][k], r)
             out[f"{r}/elevation"] = torch.from_numpy((np.clip(el, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m).astype(np.float32))
-            out[f"{r}/risk"] = torch.from_numpy(self._grid(g[f"labels/{r}/risk"][k], r).astype(np.float32))
-            out[f"{r}/region"] = torch.from_numpy(self._grid(g[f"labels/{r}/region"][k], r).astype(np.int64))
-            out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[f"xracer/{r}/elevation_m"][k], r).astype(np.float32))
-            out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[f"xracer/{r}/risk"][k], r).astype(np.float32))
+            out[f"{r}/risk"] = torch.from_numpy(self._grid(g[("labels", r, "risk")][k], r).astype(np.float32))
+            out[f"{r}/region"] = torch.from_numpy(self._grid(g[("labels", r, "region")][k], r).astype(np.int64))
+            out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[("xracer", r, "elevation_m")][k], r).astype(np.float32))
+            out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
         # the raw min-z grid is short range; its micro view is the centre crop, upsampled
         n_s = raw_s.shape[0]
         centre = raw_s[n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]

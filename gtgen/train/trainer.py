@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import random
 import time
@@ -14,15 +13,15 @@ import torch
 from torch.utils.data import DataLoader
 
 from gtgen.config import GtgenConfig, TrainConfig, save_config, stored_config
-from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
 from gtgen.errors import ConfigError, TrainError
-from gtgen.runtime.output import atomic_output, lock, write_atomic
+from gtgen.runtime.output import atomic_output, lock, signature, write_json
 from gtgen.runtime.progress import track
 from gtgen.train.augment import mirror
 from gtgen.train.data import ShardDataset, nearest_filled
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 from gtgen.train.model import MMLite
+from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
 
 log = logging.getLogger(__name__)
 
@@ -141,12 +140,12 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
         step += 1
         history.append({"step": step, **parts, "lr": sched.get_last_lr()[0]})
         if step % tc.ckpt_every == 0 or step == end:
-            _save(ckpt_path, {"version": CKPT_VERSION, "preset": tc.preset, "train": tc.model_dump(mode="json"),
+            _save(ckpt_path, {"written_by": signature(), "version": CKPT_VERSION, "preset": tc.preset, "train": tc.model_dump(mode="json"),
                               "data_config": ds.data_cfg.model_dump(mode="json"), "model": model.state_dict(),
                               "optim": opt.state_dict(), "sched": sched.state_dict(), "step": step, "history": history,
                               "torch_rng": torch.get_rng_state()})
     secs = time.perf_counter() - t0
-    write_atomic(run_dir / "metrics.json", json.dumps({"history": history, "seconds": secs}, indent=1))
+    write_json(run_dir / "metrics.json", {"history": history, "seconds": secs}, indent=1)
     _link_latest(run_dir)
     first = history[0]["total"] if history else float("nan")
     return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
@@ -213,7 +212,7 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     ds = ShardDataset(dataset, tc, split=split)
     used = split or "all"
     if len(ds) == 0:
-        raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.info.n_samples} samples are all in other splits); "
+        raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.store.n_samples} samples are all in other splits); "
                          "evaluate with --split all, or build more drives")
     if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
         raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
@@ -292,7 +291,7 @@ def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarra
     ds = ShardDataset(dataset, tc)
     pos = np.nonzero(ds.indices == index)[0]
     if not len(pos):
-        raise TrainError(f"sample {index} is not in the dataset (0..{ds.info.n_samples - 1})")
+        raise TrainError(f"sample {index} is not in the dataset (0..{ds.store.n_samples - 1})")
     with torch.no_grad():
         pred = model(_collate([ds[int(pos[0])]]))
     return {k: v[0].numpy() * (tc.elevation_clip_m if k.endswith("elevation") else 1.0) for k, v in pred.items()}

@@ -1,4 +1,5 @@
-"""The dataset as users' own code opens it: ``gtgen.open_dataset(path)``.
+"""The dataset as users' own code opens it: ``gtgen.open_dataset(path)``. It sits above
+the stages (storage below, the trainer's torch view reached lazily), so no stage imports a later one.
 
     ds = gtgen.open_dataset("gtgen_ws/dataset.zarr")
     ds.splits["val"]                       # sample indices of the val split
@@ -9,26 +10,31 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gtgen import codes
+from gtgen.storage.dataset import DatasetStore
 from gtgen.storage.schema import DATASET, DatasetAttrs
 from gtgen.storage.specs import ArraySpec
-from gtgen.storage.stores import open_dataset as _open
 
 
-@dataclass(frozen=True)
 class Dataset:
-    """A complete dataset store: its arrays (``zarr``), attributes, schema and splits."""
+    """A complete dataset store: its attributes, schema, splits, an xarray view per group
+    and a PyTorch view; every read checked (a missing or damaged chunk is a GtgenError
+    naming the array, its samples and the command that rebuilds the dataset)."""
 
-    path: Path
-    zarr: Any
-    attrs: DatasetAttrs
-    n_samples: int
+    def __init__(self, store: DatasetStore) -> None:
+        self.store = store
+        self.path: Path = store.path
+        self.attrs: DatasetAttrs = store.info
+        self.n_samples: int = store.n_samples
+
+    @property
+    def zarr(self) -> Any:
+        """The zarr group of the dataset, read through gtgen's checked store."""
+        return self.store.group
 
     @property
     def schema(self) -> dict[str, ArraySpec]:
@@ -39,16 +45,13 @@ class Dataset:
     @property
     def splits(self) -> dict[str, np.ndarray]:
         """Sample indices per split name (``train``, ``val``)."""
-        split = self.zarr["meta/split"][:] if self.n_samples else np.zeros(0, np.uint8)
-        return {name: np.nonzero(split == code)[0] for code, name in codes.SPLITS.items()}
+        return self.store.splits
 
     def xarray(self, group: str = "labels/micro") -> Any:
         """Return one group (``labels/micro``, ``labels/short``, ``xracer/<range>``,
         ``dem/<range>``, ``inputs``, ``meta``) as a lazy ``xarray.Dataset`` with coordinates:
         ``sample`` (time), ``x_m`` and ``y_m`` (cell centres of the target frame [m])."""
-        import xarray as xr
-
-        return xr.open_zarr(str(self.path), group=group, consolidated=False, zarr_format=3)
+        return self.store.xarray(group)
 
     def torch(self, split: str | None = "train", preset: str = "tiny", config: dict | None = None) -> Any:
         """Return a PyTorch ``Dataset`` of ``split`` (None: every sample) at the model sizes of
@@ -70,5 +73,4 @@ class Dataset:
 
 def open_dataset(path: str | Path) -> Dataset:
     """Open a complete dataset store, or raise ``gtgen.GtgenError`` saying why not."""
-    g, info = _open(Path(path))
-    return Dataset(Path(path), g, info.attrs, info.n_samples)
+    return Dataset(DatasetStore(Path(path)))

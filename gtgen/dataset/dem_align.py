@@ -1,0 +1,162 @@
+"""``gtgen dem-align``: place the DEM, refine per sample by ICP, reject misfits, inpaint,
+write the dataset.
+
+``run_dem_align`` reads like its steps: open the drive and fused stores, align the DEM
+to the drive (``gtgen.dem.run.align_drive``: GNSS fit, ICP chain, tiles set aside), record
+the rejected samples, assemble and write the kept ones a shard at a time on the pool, and
+last the dataset's attributes.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gtgen import __version__, codes
+from gtgen.config import GtgenConfig
+from gtgen.dataset.assemble import Context, Kept, build_block
+from gtgen.dem.fit import PlanarFit
+from gtgen.dem.place import Placement
+from gtgen.dem.run import Alignment, align_drive
+from gtgen.dem.tiles import default_dem_dir
+from gtgen.runtime.output import stage_output
+from gtgen.runtime.pool import Pool
+from gtgen.storage.dataset import ShardWriter
+from gtgen.storage.drive import DriveStore
+from gtgen.storage.fused import FusedStore
+from gtgen.storage.schema import SAMPLES_PER_SHARD, BagRef, DatasetAttrs, DriveEntry
+
+
+@dataclass
+class AlignResult:
+    """What a dem-align run did."""
+
+    store: Path
+    n_in: int
+    n_kept: int
+    rejected: dict[str, int]
+    fit: PlanarFit
+    dz_dem_m: float
+    geoid_offset_m: float
+    crs: str = ""  # the working CRS the drive was placed in
+    fitness: list[float] = field(default_factory=list)
+    split_counts: dict[str, int] = field(default_factory=dict)
+
+
+def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out: Path, cfg: GtgenConfig,
+                  workers: int = 2, overwrite: bool = False) -> AlignResult:
+    """Align the DEM to every fused sample of a drive and write the dataset ``out`` (atomically).
+
+    The ICP chain is sequential; building and writing the kept samples runs on
+    ``workers`` processes alongside it. The dataset does not depend on ``workers``.
+    """
+    drive, fused = DriveStore(drive_path), FusedStore(fused_path)
+    _check_grids(fused, cfg)
+    dem_dir = dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags])
+    with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
+            align_drive(drive, fused, dem_dir, cfg, cache=out.parent / "dem-index.json") as al:
+        W, H = drive.image_size
+        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, (H, W))
+        kept = _record(al, writer)
+        ctx = Context(drive, fused, al.dem, tmp, cfg)
+        with Pool(workers) as pool:
+            blocks = _Blocks(ctx, pool, writer)
+            for item in kept:
+                blocks.add(item)
+            blocks.finish()
+        entry = drive_entry(drive_path, drive, al.dem.crs, al, suspect_tiles=al.suspect_tiles)
+        n = writer.close(dataset_attrs(cfg, [entry], drive.image_size, drive.cameras))
+        splits = writer.split_counts()
+    p = al.placement
+    return AlignResult(out, drive.n_samples, n, writer.rejected_counts(), p.fit, p.dz_dem, p.geoid_offset_m, al.dem.crs, al.fitness,
+                       splits)
+
+
+def _check_grids(fused: FusedStore, cfg: GtgenConfig) -> None:
+    """Refuse a fused store whose grids are not the config's (the dataset would mix them)."""
+    from gtgen.config import RANGES
+    from gtgen.errors import ConfigError
+
+    for r in RANGES:
+        mine, theirs = cfg.grids.get(r), fused.config.grids.get(r)
+        if (mine.size, mine.resolution_m) != (theirs.size, theirs.resolution_m) or fused.size(r) != mine.size:
+            raise ConfigError(f"fused store '{fused.path}' has {r} grids of {theirs.size} cells at {theirs.resolution_m} m; "
+                              f"the config asks for {mine.size} at {mine.resolution_m} m: run 'gtgen fuse' again with this config, "
+                              "or pass the config it was fused with")
+
+
+def _record(al: Alignment, writer: ShardWriter) -> list[Kept]:
+    """Record the rejected samples; return the kept ones."""
+    kept = []
+    for o in al.outcomes:
+        p = o.placement
+        if not isinstance(p, Placement):
+            writer.reject(o.t_ns, 0, p, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad)
+        elif p.reason != codes.OK:
+            writer.reject(o.t_ns, 0, p.reason, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad, **_qa(p))
+        else:
+            s = p.signals
+            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m)
+            fit, rmse, C = (p.icp.fitness, p.icp.rmse_m, p.icp.T) if p.icp else (np.nan, np.nan, np.eye(4))
+            kept.append(Kept(o.k, p.T_crs_target, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
+    return kept
+
+
+def _qa(p: Placement) -> dict[str, Any]:
+    """Return what the dataset records of a rejected sample's placement."""
+    if p.icp is None:  # no ICP ran: the placement it would have started from
+        return {} if p.T_crs_target is None else {"T_crs_target": p.T_crs_target}
+    C, s = p.icp.T, p.signals
+    return {"icp_fitness": p.icp.fitness, "icp_rmse_m": p.icp.rmse_m, "T_crs_target": p.T_crs_target,
+            "icp_correction": [C[0, 3], C[1, 3], C[2, 3], np.arctan2(C[1, 0], C[0, 0])],
+            "dem_disagreement": s["disagreement"], "gnss_offset_m": s["gnss_offset_m"], "vegetation_share": s["vegetation_share"]}
+
+
+class _Blocks:
+    """Kept samples, built and written one shard at a time on the pool, collected in order
+    (so memory holds only a few blocks)."""
+
+    def __init__(self, ctx: Context, pool: Pool, writer: ShardWriter) -> None:
+        self.ctx, self.pool, self.writer = ctx, pool, writer
+        self.items: list[Kept] = []
+        self.start = 0
+        self.futures: list[Future] = []
+
+    def add(self, item: Kept) -> None:
+        self.items.append(item)
+        if len(self.items) == SAMPLES_PER_SHARD:
+            self._submit()
+
+    def _submit(self) -> None:
+        if not self.items:
+            return
+        self.futures.append(self.pool.submit(build_block, self.ctx, self.start, self.items))
+        while self.futures and (self.futures[0].done() or len(self.futures) > 4):
+            self.writer.add_block(self.futures.pop(0).result())
+        self.start += len(self.items)
+        self.items = []
+
+    def finish(self) -> None:
+        self._submit()
+        while self.futures:
+            self.writer.add_block(self.futures.pop(0).result())
+
+
+def drive_entry(drive_path: Path, drive: DriveStore, crs: str, al: Alignment, name: str | None = None,
+                suspect_tiles: list[str] | None = None) -> DriveEntry:
+    """Return the dataset's record of one drive."""
+    bags = [BagRef(**b) for b in drive.bags]
+    return DriveEntry(name=name or (Path(bags[0].path).stem if bags else drive_path.stem), drive_store=str(drive_path.resolve()),
+                      bags=bags, crs=crs, alignment=al.placement.alignment(), suspect_tiles=suspect_tiles or [])
+
+
+def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], image_size: tuple[int, int], cameras: list[str],
+                  provenance: dict | None = None) -> DatasetAttrs:
+    """Return the attributes of a dataset of ``drives`` built with ``cfg`` (images of
+    ``image_size`` (width, height) [px] from ``cameras``)."""
+    return DatasetAttrs(gtgen_version=__version__, config=cfg.model_dump(mode="json"), drives=drives,
+                        image_size=tuple(image_size), cameras=list(cameras), provenance=provenance)

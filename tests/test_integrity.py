@@ -1,0 +1,267 @@
+"""Trust at the edges: a damaged store is never read as data, a user's file is never
+replaced, locks and failed commands leave nothing in the user's folders.
+
+Each adverse case asserts the exit code (or the error class), a one-line message naming
+what is wrong, and that nothing of the user's changed."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SMALL, run_cli
+from gtgen.errors import GtgenError, OutputExistsError, StoreError
+from gtgen.runtime.output import atomic_output, lock_path, owned, write_json
+from gtgen.storage.dataset import DatasetStore
+from gtgen.storage.drive import DriveStore
+from gtgen.storage.integrity import DamagedStoreError
+from gtgen.storage.stores import verify_store
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _one_line(p: subprocess.CompletedProcess) -> str:
+    assert "Traceback" not in p.stderr + p.stdout, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1, p.stderr
+    return lines[0]
+
+
+def _shard(store: Path, array: str, k: int = 1) -> Path:
+    """Return shard file ``k`` (samples 16k to 16k + 15) of a per-sample array."""
+    ndim = len(json.loads((store / array / "zarr.json").read_text())["shape"])
+    return store.joinpath(*array.split("/"), "c", str(k), *["0"] * (ndim - 1))
+
+
+def _all_shards(store: Path, array: str) -> None:
+    for f in (store / array / "c").rglob("*"):
+        if f.is_file():
+            f.unlink()
+
+
+# -- damaged datasets ------------------------------------------------------------------------
+
+DAMAGES = {
+    "labels shard deleted": lambda ds: _shard(ds, "labels/micro/elevation_m").unlink(),
+    "bytes overwritten inside a shard": lambda ds: _overwrite(_shard(ds, "labels/short/elevation_m"), 40),
+    "shard truncated": lambda ds: _truncate(_shard(ds, "labels/micro/region")),
+    "meta/t_ns shard deleted": lambda ds: _shard(ds, "meta/t_ns").unlink(),
+    "image shards deleted": lambda ds: _all_shards(ds, "inputs/images"),
+    "array metadata corrupt": lambda ds: (ds / "labels" / "micro" / "risk" / "zarr.json").write_text("{not json"),
+}
+
+
+def _overwrite(f: Path, at: int) -> None:
+    data = bytearray(f.read_bytes())
+    data[at : at + 8] = b"\x00\xff" * 4
+    f.write_bytes(bytes(data))
+
+
+def _truncate(f: Path) -> None:
+    f.write_bytes(f.read_bytes()[:-100])
+
+
+@pytest.fixture(scope="module")
+def damaged(dataset, tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("damaged")
+    out = {}
+    for i, (name, damage) in enumerate(DAMAGES.items()):
+        ds = _copy(dataset, root / f"d{i}" / "dataset.zarr")
+        damage(ds)
+        out[name] = ds
+    return out
+
+
+@pytest.mark.parametrize("name", list(DAMAGES))
+def test_a_damaged_dataset_is_an_error_for_every_reader(damaged, name, cfg, tmp_path):
+    """The Python API's reads, verify, report, viz and export each stop with one line
+    naming the store as damaged and the command that rebuilds it; nothing reads fill as data."""
+    ds_path = damaged[name]
+    with pytest.raises(GtgenError, match="damaged.*gtgen dem-align") as err:
+        ds = DatasetStore(ds_path)
+        for kind, rng, layer in (("labels", "micro", "elevation_m"), ("labels", "short", "elevation_m"),
+                                 ("labels", "micro", "region"), ("labels", "micro", "risk")):
+            for k in range(ds.n_samples):
+                ds.grid(kind, rng, layer)[k]
+        ds.meta("t_ns")
+        for k in range(ds.n_samples):
+            ds.inputs("images")[k]
+    assert "\n" not in str(err.value)
+    _, _, problems = verify_store(ds_path)
+    assert problems, name
+    readers = {"verify": ["verify", ds_path], "report": ["report", ds_path, "-o", tmp_path / "rep"],
+               "viz": ["viz", ds_path, "--sample", "16", "-o", tmp_path / "s.png"],
+               "geotiff": ["export", "geotiff", ds_path, "-o", tmp_path / "tifs"], "mcap": ["export", "mcap", ds_path, "-o", tmp_path / "x.mcap"]}
+    # every command that reads the damaged array (report and the GeoTIFFs read no image)
+    names = ["verify", "viz", "mcap"] if name == "image shards deleted" else ["verify", "report", "viz", "geotiff"]
+    for cmd in (readers[n] for n in names):
+        p = run_cli(*cmd)
+        assert p.returncode == 1, (cmd, p.stdout, p.stderr)
+        line = _one_line(p)
+        assert "damaged" in line and "gtgen dem-align" in line, (cmd, line)
+    assert not any((tmp_path / n).exists() for n in ("tifs", "s.png", "x.mcap"))
+
+
+def test_the_error_names_the_array_and_its_samples(damaged):
+    ds = DatasetStore(damaged["labels shard deleted"])
+    with pytest.raises(DamagedStoreError) as err:
+        ds.grid("labels", "micro", "elevation_m")[20]
+    msg = str(err.value)
+    assert "array 'labels/micro/elevation_m' samples 16-31" in msg and "is missing" in msg and "gtgen verify" in msg
+    ds = DatasetStore(damaged["bytes overwritten inside a shard"])
+    with pytest.raises(DamagedStoreError, match="labels/short/elevation_m"):
+        for k in range(16, 32):
+            ds.grid("labels", "short", "elevation_m")[k]
+
+
+def test_training_on_a_damaged_dataset_stops(damaged, tmp_path):
+    p = run_cli("train", damaged["image shards deleted"], "--run", tmp_path / "run", "--steps", "2", "-c", SMALL)
+    assert p.returncode == 1
+    assert "damaged" in _one_line(p)
+
+
+def test_a_whole_store_verifies_and_reads_as_before(dataset):
+    fmt, n, problems = verify_store(dataset)
+    assert fmt.kind == "gtgen-dataset" and n > 10 and problems == []
+    p = run_cli("verify", dataset)
+    assert p.returncode == 0 and "whole" in p.stdout
+
+
+def test_a_chunk_of_fill_is_not_stored_and_reads_as_fill(tmp_path):
+    """Chunks all of fill are not stored, by design: the manifest tells them from lost ones."""
+    from gtgen.storage.fused import LABEL_LAYERS, XRACER_LAYERS, FusedStore, FusedWriter
+
+    w = FusedWriter(tmp_path / "f.zarr")
+    w.create_grids(2, {"micro": 4, "short": 4})
+    ones = {n: np.ones((4, 4)) for n in LABEL_LAYERS}
+    nan = {n: np.full((4, 4), np.nan) for n in LABEL_LAYERS} | {"count": np.zeros((4, 4)), "region": np.zeros((4, 4))}
+    for r in ("micro", "short"):
+        w.write_sample(r, 0, ones, {n: np.ones((4, 4)) for n in XRACER_LAYERS})
+        w.write_sample(r, 1, nan, {n: np.full((4, 4), np.nan) for n in XRACER_LAYERS})
+    w.finish(np.zeros(2, np.uint8))
+    assert not (tmp_path / "f.zarr" / "fused" / "micro" / "elevation_m" / "c" / "1").exists()
+    f = FusedStore(tmp_path / "f.zarr")
+    assert np.isnan(f.grid("micro", "elevation_m")[1]).all() and (f.grid("micro", "elevation_m")[0] == 1).all()
+    shutil.rmtree(tmp_path / "f.zarr" / "fused" / "micro" / "elevation_m" / "c" / "0")
+    with pytest.raises(DamagedStoreError, match="fused/micro/elevation_m' sample 0.*is missing"):
+        FusedStore(tmp_path / "f.zarr").grid("micro", "elevation_m")[0]
+
+
+def test_a_store_without_its_manifest_or_with_a_stray_file(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path / "a.zarr")
+    (ds / "labels" / "micro" / "elevation_m" / "c" / "9").write_bytes(b"stray")
+    _, _, problems = verify_store(ds)
+    assert any("not written with the store" in p for p in problems)
+    shutil.rmtree(ds / "gtgen_manifest")
+    with pytest.raises(DamagedStoreError, match="record of what was written"):
+        DatasetStore(ds)
+
+
+def test_damaged_drive_and_fused_stores_stop_the_next_stage(drive_store, fused_store, tmp_path):
+    drive = _copy(drive_store, tmp_path / "ws" / "drive.zarr")
+    victim = next(p for p in (drive / "maps" / "micro" / "elevation_m").iterdir() if p.name.startswith("c."))
+    victim.unlink()
+    p = run_cli("fuse", drive, "-c", SMALL, "--workers", "1")
+    line = _one_line(p)
+    assert p.returncode == 1 and "maps/micro/elevation_m" in line and "gtgen extract" in line, line
+    assert not (tmp_path / "ws" / "fused.zarr").exists()
+    fused = _copy(fused_store, tmp_path / "ws2" / "fused.zarr")
+    os.symlink(drive_store, tmp_path / "ws2" / "drive.zarr")
+    victim = next((fused / "fused" / "short" / "region" / "c").iterdir())
+    shutil.rmtree(victim) if victim.is_dir() else victim.unlink()
+    p = run_cli("dem-align", tmp_path / "ws2" / "drive.zarr", "-c", SMALL)
+    line = _one_line(p)
+    assert p.returncode == 1 and "fused/short/region" in line and "gtgen fuse" in line, line
+
+
+# -- outputs over the user's files -----------------------------------------------------------
+
+def test_outputs_never_replace_what_gtgen_did_not_write(drive_dir, drive_store, dataset, tmp_path):
+    mine = tmp_path / "mydata"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    p = run_cli("extract", drive_dir / "drive.mcap", "-o", mine, "-c", SMALL)
+    assert p.returncode == 1 and "--overwrite" in _one_line(p) and str(mine) in p.stderr
+    assert (mine / "notes.txt").read_text() == "mine"
+    afile = tmp_path / "a_file"
+    afile.write_text("mine")
+    p = run_cli("fuse", drive_store, "-o", afile, "-c", SMALL)
+    assert p.returncode == 1 and afile.read_text() == "mine"
+    p = run_cli("viz", dataset, "-o", afile)
+    assert p.returncode == 1 and "--overwrite" in _one_line(p) and afile.read_text() == "mine"
+    p = run_cli("export", "mcap", dataset, "-o", tmp_path / "mine.mcap")
+    assert p.returncode == 0
+    assert owned(tmp_path / "mine.mcap")
+
+
+def test_export_geotiff_writes_into_a_folder_and_leaves_the_rest(dataset, tmp_path):
+    qgis = tmp_path / "qgis"
+    qgis.mkdir()
+    (qgis / "project.qgz").write_bytes(b"qgis project")
+    (qgis / "notes.txt").write_text("notes")
+    for _ in range(2):  # the second run replaces its own files
+        p = run_cli("export", "geotiff", dataset, "-o", qgis)
+        assert p.returncode == 0, p.stderr
+    assert (qgis / "project.qgz").read_bytes() == b"qgis project" and (qgis / "notes.txt").read_text() == "notes"
+    tif = next(qgis.rglob("elevation_m.tif"))
+    tif.write_bytes(b"the user's own raster")
+    p = run_cli("export", "geotiff", dataset, "-o", qgis)
+    assert p.returncode == 1 and "--overwrite" in _one_line(p)
+    assert tif.read_bytes() == b"the user's own raster"
+    assert run_cli("export", "geotiff", dataset, "-o", qgis, "--overwrite").returncode == 0
+    assert owned(tif)
+
+
+def test_a_rerun_replaces_its_own_outputs_and_overwrite_replaces_the_users(tmp_path):
+    out = tmp_path / "r.json"
+    write_json(out, {"a": 1})
+    write_json(out, {"a": 2})
+    assert json.loads(out.read_text())["a"] == 2
+    out.write_text('{"a": 3}')
+    with pytest.raises(OutputExistsError, match="--overwrite"):
+        write_json(out, {"a": 4})
+    write_json(out, {"a": 5}, overwrite=True)
+    assert json.loads(out.read_text())["a"] == 5
+
+
+def test_locks_and_failed_outputs_leave_nothing_in_the_users_folders(tmp_path):
+    out = tmp_path / "new" / "deeper" / "x.zarr"
+    with pytest.raises(RuntimeError), atomic_output(out) as tmp:
+        tmp.mkdir()
+        raise RuntimeError("boom")
+    assert not (tmp_path / "new").exists()  # the folders made for the output went with it
+    assert tmp_path not in lock_path(out).parents
+    p = run_cli("fuse", "-c", SMALL, cwd=tmp_path)  # no workspace: fails, makes none
+    assert p.returncode == 1 and not (tmp_path / "gtgen_ws").exists()
+    assert not list(tmp_path.rglob("*.lock"))
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(dataset, tmp_path):
+    small = tmp_path / "small"
+    small.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(small)], capture_output=True).returncode:
+        pytest.skip("this machine does not let the tests mount a small tmpfs")
+    try:
+        p = run_cli("export", "mcap", dataset, "-o", small / "x.mcap")
+        assert p.returncode == 1 and "no space left" in _one_line(p)
+        assert not list(small.iterdir())
+    finally:
+        subprocess.run(["umount", str(small)], check=False)
+
+
+def test_drive_store_reads_are_checked_too(drive_store, tmp_path):
+    drive = _copy(drive_store, tmp_path / "d.zarr")
+    victim = next(p for p in (drive / "samples" / "images").iterdir() if p.name.startswith("c."))
+    victim.unlink()
+    d = DriveStore(drive)
+    with pytest.raises(StoreError, match="samples/images.*gtgen extract"):
+        d.images(np.arange(d.n_samples))

@@ -1,0 +1,73 @@
+"""The layout's promises, read from the code: stores are opened and their arrays named in
+``gtgen/storage/`` only, one process pool, one bilinear sampler."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+from gtgen.storage.schema import FORMATS
+
+ROOT = Path(__file__).resolve().parents[1]
+CODE = sorted(p for d in ("gtgen", "pipelines") for p in (ROOT / d).rglob("*.py"))
+OUTSIDE_STORAGE = [p for p in CODE if "storage" not in p.relative_to(ROOT).parts]
+
+
+def _strings(tree: ast.AST) -> list[tuple[int, str]]:
+    """Return (line, text) of every string literal that is not a docstring; an f-string's
+    fields read as '{}'."""
+    docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef))
+            and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    out = []
+    for n in ast.walk(tree):
+        if isinstance(n, ast.JoinedStr):
+            out.append((n.lineno, "".join(v.value if isinstance(v, ast.Constant) else "{}" for v in n.values)))
+        elif isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs:
+            out.append((n.lineno, n.value))
+    return out
+
+
+def _array_patterns() -> list[re.Pattern]:
+    """Return a pattern per array path of every store format, its range and name parts
+    free to be f-string fields ('labels/{}/elevation_m' matches 'labels/micro/elevation_m')."""
+    pats = set()
+    for fmt in FORMATS.values():
+        for s in fmt.arrays:
+            parts = s.path.split("/")
+            if len(parts) == 3:  # group/range/name: the range may be a field
+                parts[1] = rf"(?:{re.escape(parts[1])}|\{{\}})"
+                pats.add("/".join([re.escape(parts[0]), parts[1], re.escape(parts[2])]))
+            else:
+                pats.add(re.escape(s.path))
+            if s.path.startswith("samples/map_index_"):
+                pats.add(r"samples/map_index_\{\}")
+    return [re.compile(rf"^{p}$") for p in pats]
+
+
+def test_no_stage_spells_an_array_path_or_opens_a_zarr_group():
+    pats = _array_patterns()
+    assert any(p.match("labels/{}/elevation_m") for p in pats)  # the check itself sees f-strings
+    found = []
+    for p in OUTSIDE_STORAGE:
+        src = p.read_text()
+        tree = ast.parse(src)
+        for line, text in _strings(tree):
+            if any(pat.match(text) for pat in pats):
+                found.append(f"{p.relative_to(ROOT)}:{line}: {text!r}")
+        for n in ast.walk(tree):
+            if isinstance(n, ast.Attribute) and n.attr in ("open_group", "open_array", "open") and \
+                    isinstance(n.value, ast.Name) and n.value.id == "zarr":
+                found.append(f"{p.relative_to(ROOT)}:{n.lineno}: zarr.{n.attr}")
+    assert not found, "outside gtgen/storage/:\n" + "\n".join(found)
+
+
+def test_one_process_pool_and_no_fork():
+    offenders = [str(p.relative_to(ROOT)) for p in CODE if p.name != "pool.py" and re.search(
+        r"ProcessPoolExecutor|multiprocessing\.Pool|get_context\(\s*['\"]fork|mp\.Pool\(", p.read_text())]
+    assert not offenders, offenders
+
+
+def test_one_bilinear_sampler():
+    hits = [str(p.relative_to(ROOT)) for p in CODE if re.search(r"map_coordinates|def _?bilinear", p.read_text())]
+    assert hits == ["gtgen/grids.py"], hits
