@@ -159,3 +159,83 @@ def test_shard_bytes_roundtrip_through_zarr(tmp_path):
     assert np.isnan(b[5]).all() and np.isnan(b[7]).all()
     with pytest.raises(ValueError, match="bad index"):
         read_shard(tmp_path / "s.zarr" / "x" / "c" / "0" / "0" / "0", 5)
+
+
+def _dem_of_kind(kind: str, tile: Path, root: Path) -> tuple[Path, Path]:
+    """Return (a DEM folder of ``kind`` built from ``tile``, the file whose change must
+    make the build redo its drives: the tile itself, or a VRT's source)."""
+    import zipfile
+
+    import rasterio
+    import rasterio.shutil
+
+    dem = root / kind
+    dem.mkdir()
+    if kind == "tif":
+        shutil.copy(tile, dem / tile.name)
+        return dem, dem / tile.name
+    if kind == "zip":
+        with zipfile.ZipFile(dem / "tiles.zip", "w") as z:
+            z.write(tile, tile.name)
+        return dem, dem / "tiles.zip"
+    if kind == "hgt":
+        src = root / "plane.tif"
+        T = rasterio.transform.from_origin(-121.0 - 0.5 / 1200, 36.0 + 0.5 / 1200, 1 / 1200, 1 / 1200)
+        with rasterio.open(src, "w", driver="GTiff", width=1201, height=1201, count=1, dtype="int16", crs="EPSG:4326",
+                           transform=T) as o:
+            o.write(np.full((1201, 1201), 300, np.int16), 1)
+        rasterio.shutil.copy(src, dem / "N35W121.hgt", driver="SRTMHGT")
+        return dem, dem / "N35W121.hgt"
+    sources = root / "vrt_sources"  # outside the DEM folder: only the VRT is a tile
+    sources.mkdir()
+    shutil.copy(tile, sources / tile.name)
+    with rasterio.open(sources / tile.name) as ds:
+        w, h, t, crs = ds.width, ds.height, ds.transform, ds.crs.to_wkt()
+    (dem / "mosaic.vrt").write_text(
+        f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}"><SRS>{crs.replace("&", "&amp;").replace("<", "&lt;")}</SRS>'
+        f"<GeoTransform>{t.c}, {t.a}, 0, {t.f}, 0, {t.e}</GeoTransform><VRTRasterBand dataType=\"Float32\" band=\"1\">"
+        f'<SimpleSource><SourceFilename relativeToVRT="0">{sources / tile.name}</SourceFilename><SourceBand>1</SourceBand>'
+        f"</SimpleSource></VRTRasterBand></VRTDataset>")
+    return dem, sources / tile.name
+
+
+@pytest.mark.parametrize("kind", ["tif", "hgt", "vrt", "zip"])
+def test_a_changed_dem_of_each_kind_redoes_the_drive_and_an_unchanged_one_is_skipped(drives, kind, tmp_path):
+    """The build's input hash covers every file the DEM tiles read (a VRT's sources too)."""
+    from pipelines.build_dataset import DriveResult, _dems, _done_and_todo, _mark_done, unit_hash
+
+    tile = sorted((drives / "a" / "dem").glob("*.tif"))[0]
+    dem, changes = _dem_of_kind(kind, tile, tmp_path)
+    cfg = small_config()
+    bags = {"a": sorted((drives / "a").glob("*.mcap"))}
+    work = tmp_path / "work"
+    (work / "a" / "dataset.zarr").mkdir(parents=True)  # as a finished drive leaves it
+    dems = _dems(bags, dem, cfg)
+    _mark_done(work / "a", unit_hash(bags["a"], cfg, dems["a"][1]), DriveResult("a", ok=True))
+    done, todo = _done_and_todo(bags, _dems(bags, dem, cfg), work, cfg, 1, None)
+    assert list(done) == ["a"] and todo == []  # unchanged: skipped
+    time.sleep(0.01)
+    changes.write_bytes(changes.read_bytes())  # the same bytes, written again: a new mtime
+    os.utime(changes, ns=(time.time_ns(), time.time_ns() + 10**9))
+    done, todo = _done_and_todo(bags, _dems(bags, dem, cfg), work, cfg, 1, None)
+    assert done == {} and [t[0] for t in todo] == ["a"]
+
+
+def test_build_checks_the_dem_before_any_work_and_takes_a_single_raster(drives, tmp_path):
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(drives / "a"), "--dem", str(tmp_path / "nope"), "-o", str(out),
+                        "-c", str(SMALL)], capture_output=True, text=True)
+    assert p.returncode == 1 and "does not exist" in p.stderr and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    assert not (out / "drives").exists()  # no drive ran
+    tile = sorted((drives / "a" / "dem").glob("*.tif"))
+    from gtgen.dem.tiles import TileIndex
+
+    assert len(TileIndex.build(tile[0]).tiles) == 1  # --dem FILE: one raster is a DEM
+    bad = tmp_path / "m.yaml"
+    bad.write_text("drives: [not, a, mapping")
+    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(bad), "-o", str(out)], capture_output=True, text=True)
+    assert p.returncode == 1 and "not valid YAML" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    bad.write_text("drives: [a, b]")
+    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(bad), "-o", str(out)], capture_output=True, text=True)
+    assert p.returncode == 1 and "mapping of drive names" in p.stderr and len(p.stderr.strip().splitlines()) == 1

@@ -81,7 +81,7 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 3, tuple(_DRIVE), "gtgen extract BAG")
+DRIVE = StoreFormat("gtgen-drive", 4, tuple(_DRIVE), "gtgen extract BAG")
 
 
 # -- the fused store (``gtgen fuse``) ------------------------------------------------------
@@ -101,7 +101,7 @@ for _r in RANGES:
         ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t"),
         ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t"),
     ]
-FUSED = StoreFormat("gtgen-fused", 1, tuple(_FUSED), "gtgen fuse")
+FUSED = StoreFormat("gtgen-fused", 2, tuple(_FUSED), "gtgen fuse")
 
 
 # -- the dataset (``gtgen dem-align``, ``gtgen build``) ---------------------------------
@@ -170,7 +170,7 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 3, tuple(_DATASET + COORDS), "gtgen dem-align")
+DATASET = StoreFormat("gtgen-dataset", 4, tuple(_DATASET + COORDS), "gtgen dem-align")
 
 # the arrays with one row per sample (sharded along the sample axis)
 SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_")))
