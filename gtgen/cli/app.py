@@ -2,8 +2,8 @@
 
 The only package that prints or exits. Every command reads and writes a workspace in
 the current directory by default: ``gtgen extract bag.mcap`` -> ``./gtgen_ws/drive.zarr``;
-``gtgen fuse`` and ``gtgen dem-align`` read it and write ``./gtgen_ws/dataset.zarr``;
-``gtgen train`` reads that. Explicit paths override. Heavy imports live inside the
+``gtgen fuse`` reads it and writes ``./gtgen_ws/fused.zarr``; ``gtgen dem-align`` reads
+both and writes ``./gtgen_ws/dataset.zarr``; ``gtgen train`` reads that. Explicit paths override. Heavy imports live inside the
 commands so that ``--help`` is instant.
 """
 

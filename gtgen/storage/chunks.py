@@ -10,11 +10,11 @@ chunk from a lost one, and the readers here take its ``check``.
 The layout is read from the array's ``zarr.json`` and checked before any file is
 touched; an array of another layout or store goes through zarr's public API instead.
 
-Why by hand: zarr's per-call cost dominates gtgen's one-grid-per-chunk arrays. Per 1 MB
-float32 grid on one thread, zarr reads in 1.6 ms and writes in 4.0 ms, these files in
-0.9 and 1.5 ms; fuse and dem-align spent about 45 % of their time in zarr calls. A chunk's
-bytes do not depend on the array's shape, so a chunk encoded ahead (extract's staging) can
-be moved into any array of the same dtype and codecs by a rename.
+Why by hand: zarr's per-call cost (its event loop) dominates gtgen's one-grid-per-chunk
+arrays; a chunk file read or written here costs little more than its zstd frame (fuse and
+dem-align spent nearly half their time in zarr calls before). A chunk's bytes do not
+depend on the array's shape, so a chunk encoded ahead (extract's staging) can be moved
+into any array of the same dtype and codecs by a rename.
 
 Oracle: ``tests/test_format.py`` writes through these functions and reads through zarr
 (and the reverse), array by array.
@@ -330,8 +330,8 @@ class Runs:
 class RangeReader:
     """Reads ``arr[a:b]`` of an array chunked along axis 0 only (whole trailing axes per
     chunk, as ``inputs/voxel_points_m``) from its chunk files, keeping the last decoded
-    chunk; zarr where the layout or store differs. Why: one zarr call costs about 3 ms of
-    its event loop, a sixth of what ShardDataset spends on a sample."""
+    chunk; zarr where the layout or store differs. Why: one zarr call costs milliseconds of
+    its event loop, a large part of what the loader spends on a sample."""
 
     def __init__(self, arr: Any, check: Check | None = None) -> None:
         self.arr = arr

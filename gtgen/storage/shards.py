@@ -10,8 +10,8 @@ assembled from encoded chunks (``storage/chunks.py``) without zarr's per-call co
 
 Why by hand: merging a drive into a dataset copies every sample's bytes without
 decoding and re-encoding them, and dem-align writes each shard once with one file write
-(its fused grids pass through as bytes); through zarr, dem-align took 11.8 s instead of
-8.3 s per 96-sample drive. Every function first checks the layout in ``zarr.json``
+(its fused grids pass through as bytes); through zarr, dem-align took about 1.4 times as
+long. Every function first checks the layout in ``zarr.json``
 (``sample_layout``); callers fall back to zarr where it differs.
 
 Oracle: ``tests/test_format.py`` (shards written here read back through zarr and the
@@ -132,8 +132,8 @@ class SampleReader:
 
     With gtgen's layout (``sample_layout`` and chunks ``encode_chunk`` makes) it reads the
     shard's index once, then each sample as one seek + read + zstd decode; otherwise it
-    falls back to zarr. Why: a zarr read costs about 3 ms of its event loop per call,
-    which was 53 of the 75 ms ShardDataset spent per training sample (16 reads). Oracle:
+    falls back to zarr. Why: a zarr read costs milliseconds of its event loop per call,
+    which was most of what ShardDataset spent per training sample (16 reads). Oracle:
     ``tests/test_format.py`` (every sample equals zarr's).
     """
 

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from collections import defaultdict
-
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.geometry import invert, make_transform, quat_to_matrix
+from gtgen.geometry import make_transform, quat_to_matrix
 
 
 def frame_id(name: str) -> str:
@@ -24,22 +22,3 @@ def transform_matrix(tr: object) -> NDArray[np.float64]:
     """Return the 4x4 matrix of a geometry_msgs/Transform."""
     t = tr.translation  # type: ignore[attr-defined]
     return make_transform(quat_to_matrix(quat_xyzw(tr.rotation)), np.array([t.x, t.y, t.z]))  # type: ignore[attr-defined]
-
-
-def chain(static: dict[tuple[str, str], NDArray], parent: str, child: str) -> NDArray | None:
-    """Return T_parent_child through the static TF tree ({(parent, child): T}), or None."""
-    edges: dict[str, list[tuple[str, NDArray]]] = defaultdict(list)
-    for (p, c), T in static.items():
-        edges[p].append((c, T))
-        edges[c].append((p, invert(T)))
-    todo = [(parent, np.eye(4))]
-    seen = {parent}
-    while todo:
-        node, T = todo.pop()
-        if node == child:
-            return T
-        for nxt, Tn in edges[node]:
-            if nxt not in seen:
-                seen.add(nxt)
-                todo.append((nxt, T @ Tn))
-    return None
