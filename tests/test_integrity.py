@@ -265,3 +265,46 @@ def test_drive_store_reads_are_checked_too(drive_store, tmp_path):
     d = DriveStore(drive)
     with pytest.raises(StoreError, match="samples/images.*gtgen extract"):
         d.images(np.arange(d.n_samples))
+
+
+# -- a kill -9 inside each stage, then the same command again --------------------------------
+
+def _kill_when(folder: Path, pattern: str, args: list, cwd: Path) -> None:
+    """Start ``gtgen ARGS``, SIGKILL it once something matching ``pattern`` (its partial
+    output or scratch) appears in ``folder``."""
+    import signal
+    import sys
+    import time
+
+    p = subprocess.Popen([sys.executable, "-m", "gtgen", *map(str, args)], cwd=cwd, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while not list(folder.glob(pattern)) and p.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    assert p.poll() is None, f"gtgen {args[0]} ended before it could be killed mid-write"
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+
+
+@pytest.mark.parametrize("stage", ["extract", "dem-align", "export-mcap"])
+def test_a_stage_killed_then_run_again_gives_the_same_output(stage, drive_dir, drive_store, fused_store, dataset, tmp_path):
+    ws = tmp_path / "gtgen_ws"
+    ws.mkdir()
+    if stage == "extract":
+        args, out, ref = ["extract", drive_dir / "drive.mcap", "-c", SMALL, "--workers", "1"], ws / "drive.zarr", drive_store
+    elif stage == "dem-align":
+        (ws / "drive.zarr").symlink_to(drive_store)
+        (ws / "fused.zarr").symlink_to(fused_store)
+        args, out, ref = ["dem-align", "-c", SMALL], ws / "dataset.zarr", dataset
+    else:
+        args, out, ref = ["export", "mcap", dataset, "-o", ws / "x.mcap"], ws / "x.mcap", None
+    _kill_when(ws, "*.partial", args, tmp_path)
+    assert not out.exists()
+    p = run_cli(*args, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert not list(ws.glob("*.partial"))  # nothing left of the killed run
+    if ref is not None:
+        a, b = (DatasetStore(x) if stage == "dem-align" else DriveStore(x) for x in (ref, out))
+        for path in (("labels/micro/elevation_m", "meta/T_crs_target") if stage == "dem-align" else ("samples/t_ns", "samples/images")):
+            np.testing.assert_array_equal(a.read(path), b.read(path), err_msg=path)
+        assert verify_store(out)[2] == []

@@ -25,10 +25,10 @@ signature (``custom_data.written_by``), so a later export may replace it.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import shutil
-import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat
-from gtgen.runtime.output import signature, stage_output
+from gtgen.runtime.output import PARTIAL, remove, signature, stage_output
 from gtgen.runtime.progress import track
 from gtgen.storage.dataset import DatasetStore
 
@@ -99,9 +99,11 @@ def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport
     points = ds.voxel_points()
     fac = MessageFactory(ros1=False)
     res = McapExport(out)
-    with stage_output(out, reads=[dataset], overwrite=overwrite) as tmp, \
-            tempfile.TemporaryDirectory(dir=out.parent, prefix=".gtgen-mcap-") as scratch:
-        w = open_mcap_writer(Path(scratch) / "bag")
+    # rosbags writes a recording folder; it lies beside the output (the same file system, so
+    # the file moves by a rename) under a partial name, which a run after a kill removes
+    scratch = out.with_name(out.name + ".scratch" + PARTIAL)
+    with stage_output(out, reads=[dataset], overwrite=overwrite) as tmp, _scratch(scratch):
+        w = open_mcap_writer(scratch / "bag")
         w.set_custom_data("written_by", signature())  # type: ignore[attr-defined]
         topics = _Topics(w, fac.store)
         try:
@@ -114,10 +116,21 @@ def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport
                     _write_sample(fac, topics, block, int(np.searchsorted(ks, k)), int(k), int(t_ns[k]), T_map, cams, cfg, points, offsets)
         finally:
             w.close()  # type: ignore[attr-defined]
-        shutil.move(str(next((Path(scratch) / "bag").glob("*.mcap"))), tmp)
+        shutil.move(str(next((scratch / "bag").glob("*.mcap"))), tmp)
     res.samples = len(order)
     res.counts = dict(sorted(topics.counts.items()))
     return res
+
+
+@contextlib.contextmanager
+def _scratch(folder: Path) -> Iterator[None]:
+    """Make ``folder`` anew for the block, and remove it after."""
+    remove(folder)
+    folder.mkdir(parents=True)
+    try:
+        yield
+    finally:
+        remove(folder)
 
 
 def _read_block(ds: DatasetStore, ks: NDArray) -> dict:
