@@ -148,7 +148,7 @@ def test_mcap_export_plays_back_with_rosbags(dataset, tmp_path, cfg):
 
     out = tmp_path / "labels.mcap"
     res = export_mcap(dataset, out)
-    assert out.is_file() and not any(p.name.startswith(".gtgen-mcap") for p in tmp_path.iterdir())
+    assert out.is_file() and not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
     g = zarr.open_group(str(dataset), mode="r")
     t_ns = g["meta/t_ns"][:]
     S = len(t_ns)
