@@ -248,11 +248,14 @@ def test_locks_and_failed_outputs_leave_nothing_in_the_users_folders(tmp_path):
 def test_a_full_disk_is_one_line_and_leaves_nothing(dataset, tmp_path):
     small = tmp_path / "small"
     small.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(small)], capture_output=True).returncode:
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(small)], capture_output=True).returncode:
         pytest.skip("this machine does not let the tests mount a small tmpfs")
     try:
         p = run_cli("export", "mcap", dataset, "-o", small / "x.mcap")
         assert p.returncode == 1 and "no space left" in _one_line(p)
+        assert not list(small.iterdir())
+        p = run_cli("export", "geotiff", dataset, "-o", small / "tifs")
+        assert p.returncode == 1 and "no space left" in _one_line(p).lower()
         assert not list(small.iterdir())
     finally:
         subprocess.run(["umount", str(small)], check=False)

@@ -239,3 +239,18 @@ def test_build_checks_the_dem_before_any_work_and_takes_a_single_raster(drives, 
     bad.write_text("drives: [a, b]")
     p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(bad), "-o", str(out)], capture_output=True, text=True)
     assert p.returncode == 1 and "mapping of drive names" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_report_of_a_multi_drive_dataset_judges_each_drive_by_its_own_truth(pool_build, tmp_path):
+    """Three drives of three seeds: each drive's labels against its own truth, as each
+    drive's own report would (one shared truth would read as a corrupted merge)."""
+    from gtgen.report import build_report
+
+    rep = build_report(pool_build / "dataset.zarr", tmp_path / "rep")
+    assert sorted(rep.truth["drives_with_truth"]) == ["a", "b", "c"]
+    for r in ("micro", "short"):
+        assert rep.truth[r]["obs_pc"]["elevation_mae_m"] < 0.2, rep.truth[r]
+    c = rep.truth["rejections"]["confusion"]
+    assert c["kept"]["bad"] == 0 and c["kept"]["good"] > 0
+    alone = build_report(pool_build / "drives" / "b" / "dataset.zarr", tmp_path / "rep_b")
+    assert abs(alone.truth["short"]["obs_pc"]["elevation_mae_m"] - rep.truth["short"]["obs_pc"]["elevation_mae_m"]) < 0.1

@@ -25,6 +25,9 @@ the signature in its TIFFTAG_SOFTWARE), unless ``overwrite``.
 
 from __future__ import annotations
 
+import errno
+import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -202,17 +205,35 @@ def _open_bands(folder: Path, r: str, width: int, height: int, crs: str, transfo
 
 
 def _to_cog(src_path: Path, path: Path, overwrite: bool) -> None:
-    """Copy a GeoTIFF into the Cloud-Optimized GeoTIFF ``path`` (atomically; deflate, 256 px
-    tiles, overviews down to 256 px; averaged, or nearest for codes and counts), and remove
-    the source."""
+    """Copy a GeoTIFF into the Cloud-Optimized GeoTIFF ``path`` (deflate, 256 px tiles,
+    overviews down to 256 px; averaged, or nearest for codes and counts), and remove the
+    source. The COG is made beside the source (the scratch folder) and then moved or
+    copied into place atomically, so that a full disk at ``path`` is an OSError, not a
+    GDAL error in mid-file."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
-    with rasterio.open(src_path) as src, atomic_output(path, overwrite) as tmp:
+    cog = src_path.with_name(src_path.name + ".cog")
+    with rasterio.open(src_path) as src:
         kind = np.dtype(src.dtypes[0]).kind
-        rio_copy(src, str(tmp), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
+        rio_copy(src, str(cog), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
                  overview_resampling="nearest" if kind in "ui" else "average")
     src_path.unlink()
+    with atomic_output(path, overwrite) as tmp:
+        try:
+            os.replace(cog, tmp)
+        except OSError as err:
+            if err.errno != errno.EXDEV:
+                raise
+            shutil.copyfile(cog, tmp)
+    cog.unlink(missing_ok=True)
+
+
+def _write_error(path: Path, err: Exception) -> OSError:
+    """Return GDAL's failure to write ``path`` as the OSError it is (ENOSPC on a full disk)."""
+    where = path if path.is_dir() else path.parent
+    full = "space" in str(err).lower() or (where.exists() and shutil.disk_usage(where).free < (1 << 20))
+    return OSError(errno.ENOSPC if full else errno.EIO, f"{'no space left on the device' if full else err}", str(path))
 
 
 def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, overwrite: bool = False) -> ExportResult:
@@ -222,6 +243,7 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, o
     import tempfile
 
     import rasterio
+    import rasterio.errors
 
     ds = DatasetStore(dataset)
     if ds.n_samples == 0:
@@ -256,11 +278,13 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, o
                     _write_mosaic(Path(scratch), folder, ds, r, cfg.grids.get(r), ks, T, t_s, ds.info.drives[d].crs, overwrite)
                     res.files += [folder / f"{layer}.tif" for layer in LAYERS]
                 res.samples += len(ks)
-        except BaseException:
+        except BaseException as err:
+            # GDAL reports a full disk as an I/O error of its own
+            mapped = _write_error(out, err) if isinstance(err, rasterio.errors.RasterioError) else None
             if made:  # a folder made for this export holds only what it wrote
-                import shutil
-
                 shutil.rmtree(out, ignore_errors=True)
+            if mapped is not None:
+                raise mapped from err
             raise
     return res
 
