@@ -17,7 +17,7 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, GtgenConfig
 from gtgen.errors import PoseError, TopicError
-from gtgen.extract.scan import Scan
+from gtgen.extract.scan import DUPLICATE, Scan
 from gtgen.geometry import matrix_to_quat, rescale_K
 
 NO_TRANSFORM = "no_transform"
@@ -71,13 +71,15 @@ def _warnings(cfg: GtgenConfig, scan: Scan, track: PoseTrack, ooo: int, dups: in
     if ooo:
         warnings.append(f"odometry: {ooo} out-of-order stamps (sorted)")
     if dups:
-        warnings.append(f"odometry: {dups} duplicate stamps (dropped)")
+        warnings.append(f"odometry: {dups} messages share their stamp with an earlier one of other content (the first kept)")
     gaps = np.diff(track.t_ns) * 1e-9
     big = gaps > 2 * cfg.extract.pose_tolerance_s
     if big.any():
         warnings.append(f"poses: {int(big.sum())} gaps longer than {2 * cfg.extract.pose_tolerance_s:.2f} s "
                         f"(max {gaps.max():.2f} s); samples there are rejected")
     for s in scan.stats.values():
+        if s.dropped.get(DUPLICATE):
+            warnings.append(f"{s.topic}: {s.dropped[DUPLICATE]} duplicate messages (same stamp and bytes as an earlier one) dropped")
         if s.record_skew_max_s > cfg.extract.record_skew_warn_s:
             warnings.append(f"{s.topic}: header stamps differ from record times by up to {s.record_skew_max_s:.1f} s (header stamps are used)")
     return warnings
@@ -93,7 +95,7 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
         frames = [m[2] for m in meta]
         ok = _known(tf, tp.odom_frame, frames, t) | (t < 0)
         topic_of[role].drop(NO_TRANSFORM, int(sum(1 for m, k in zip(meta, ok) if m[1] and not k)))
-        scan.map_meta[role] = [(m[0], m[1] and bool(k), m[2]) for m, k in zip(meta, ok)]
+        scan.map_meta[role] = [(m[0], m[1] and bool(k), *m[2:]) for m, k in zip(meta, ok)]
     for role, frames, target in [("voxel_map", scan.voxel_frames, tp.odom_frame)] + \
             [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS]:
         t = np.asarray(scan.stamps[role], np.int64)

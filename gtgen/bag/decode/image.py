@@ -27,6 +27,8 @@ def decode_image(msg: object, msgtype: str) -> NDArray[np.uint8]:
     raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
     if enc not in CHANNELS:
         raise DecodeError(f"Image encoding {enc!r} unsupported; expected one of {sorted(CHANNELS)}")
+    if h < 1 or w < 1 or step < w * CHANNELS[enc] or raw.size < h * step:
+        raise DecodeError(f"Image {w} x {h} {enc} with step {step} needs {h * max(step, w * CHANNELS[enc])} bytes; it has {raw.size}")
     arr = raw[: h * step].reshape(h, step)[:, : w * CHANNELS[enc]].reshape(h, w, CHANNELS[enc])
     if enc.startswith("bgr"):
         arr = arr[..., [2, 1, 0]]
