@@ -145,9 +145,10 @@ def table(title: str, rows: list[tuple[str, Any]]) -> None:
     console().print(t)
 
 
-def na(v: Any) -> str:
-    """Return ``v`` for a table cell: 'n/a' for a value that does not exist (None)."""
-    return "n/a" if v is None else str(v)
+def na(v: Any, unit: str = "") -> str:
+    """Return ``v`` and its ``unit`` for a table cell, or 'n/a' for a value that does not
+    exist (None: a region without cells, a rate without samples)."""
+    return "n/a" if v is None else f"{v}{unit}"
 
 
 def fmt(v: Any, pct: bool = False) -> str:

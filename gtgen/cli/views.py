@@ -50,26 +50,26 @@ def report(
         for r in ("micro", "short"):
             for reg in ("obs_pc", "obs_f", "unobs"):
                 e = t[r][reg]
-                rows.append((f"truth {r} {reg}", f"elev MAE {na(e['elevation_mae_m'])} m, risk MSE {na(e['risk_mse'])}, "
-                                                  f"X-Racer MAE {na(e['xracer_elevation_mae_m'])} m"))
+                rows.append((f"truth {r} {reg}", f"elev MAE {na(e['elevation_mae_m'], ' m')}, risk MSE {na(e['risk_mse'])}, "
+                                                  f"X-Racer MAE {na(e['xracer_elevation_mae_m'], ' m')}"))
             fv = t[r]["fused_vs_single_map"]
-            rows.append((f"truth {r} fused vs single map", f"{na(fv['fused_mae_m'])} m vs {na(fv['single_map_mae_m'])} m on {fv['cells']} cells"))
+            rows.append((f"truth {r} fused vs single map", f"{na(fv['fused_mae_m'], ' m')} vs {na(fv['single_map_mae_m'], ' m')} on {fv['cells']} cells"))
         d = t["dem_alignment"]
         hv, ha, vv = d["horizontal_at_vehicle_m"], d["horizontal_50m_ahead_m"], d["vertical_m"]
-        rows.append(("DEM alignment error", f"horizontal median {na(hv.get('median'))} m (max {na(hv.get('max'))}), "
-                                            f"at 50 m ahead median {na(ha.get('median'))} m, vertical median {na(vv.get('median'))} m (max {na(vv.get('max'))})"))
+        rows.append(("DEM alignment error", f"horizontal median {na(hv.get('median'), ' m')} (max {na(hv.get('max'), ' m')}), "
+                                            f"at 50 m ahead median {na(ha.get('median'), ' m')}, vertical median {na(vv.get('median'), ' m')} (max {na(vv.get('max'), ' m')})"))
     rj = t.get("rejections")
     if rj:
         c = rj["confusion"]
         rows.append(("truth: kept (good / bad)", f"{c['kept']['good']} / {c['kept']['bad']}"))
         rows.append(("truth: rejected (good / bad)", f"{c['rejected']['good']} / {c['rejected']['bad']}"))
-        rows.append(("truth: bad rejected, good kept", f"{na(rj['bad_rejected_pct'])} %, {na(rj['good_kept_pct'])} %"))
+        rows.append(("truth: bad rejected, good kept", f"{na(rj['bad_rejected_pct'], ' %')}, {na(rj['good_kept_pct'], ' %')}"))
         rows += [(f"truth: reasons of rejected {cls}", ", ".join(f"{k} {v}" for k, v in r.items()) or "none") for cls, r in rj["reasons"].items()]
         fe, ga = rj["fill_error_m"]["kept"], rj["gnss_fit_alone_error"]
         if fe:
-            rows.append(("truth: DEM fill error of kept", f"median {na(fe['median'])} m, max {na(fe['max'])} m"))
-        rows.append(("truth: GNSS fit alone", f"horizontal median {na(ga['horizontal_m'].get('median'))} m, vertical {na(ga['vertical_m'].get('median'))} m, "
-                                              f"yaw {na(ga['yaw_deg'].get('median'))} deg"))
+            rows.append(("truth: DEM fill error of kept", f"median {na(fe['median'], ' m')}, max {na(fe['max'], ' m')}"))
+        rows.append(("truth: GNSS fit alone", f"horizontal median {na(ga['horizontal_m'].get('median'), ' m')}, vertical {na(ga['vertical_m'].get('median'), ' m')}, "
+                                              f"yaw {na(ga['yaw_deg'].get('median'), ' deg')}"))
     rows.append(("figures", ", ".join(str(p) for p in rep.figures)))
     table("gtgen report", rows)
 
