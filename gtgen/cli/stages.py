@@ -76,7 +76,8 @@ def extract(
     from rich.table import Table
 
     t = Table(title="gtgen extract: topics")
-    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "dropped", "record-header max s"):
+    t.add_column("topic", overflow="fold")  # a topic name cut short with an ellipsis is no name
+    for col in ("role", "count", "rate Hz", "max gap s", "decode failures", "dropped", "record-header max s"):
         t.add_column(col)
     for s in res.topics:
         t.add_row(s["topic"], s["role"], str(s["count"]), str(s["rate_hz"]), str(s["max_gap_s"]),

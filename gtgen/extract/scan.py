@@ -16,7 +16,7 @@ and only a role left with no usable message stops the run.
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,7 +110,7 @@ class Scan:
     voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it is unusable
     map_meta: dict[str, list[tuple[int, bool, str, tuple | None]]] = field(default_factory=lambda: defaultdict(list))  # (stamp, usable, frame, (shape, resolution))
     map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution), set by ``merged``
-    keys: dict[str, list[tuple[int, Key]]] = field(default_factory=lambda: defaultdict(list))  # topic -> (ordinal, key) of the messages used
+    keys: dict[str, list[tuple[int, Key, float]]] = field(default_factory=lambda: defaultdict(list))  # topic -> (ordinal, key, record - header [s]) of the messages used
     staged: Staged | None = None  # what this slice staged (not merged by ``extend``)
     warnings: list[str] = field(default_factory=list)
 
@@ -140,7 +140,7 @@ class Scan:
         for k, v in other.map_meta.items():
             self.map_meta[k].extend(v)
         for t, v in other.keys.items():
-            self.keys[t] += [(o + shift[t], key) for o, key in v]
+            self.keys[t] += [(o + shift[t], *rest) for o, *rest in v]
         self.warnings += [w for w in other.warnings if w not in self.warnings]
 
     def drop_repeats(self) -> None:
@@ -149,7 +149,7 @@ class Scan:
         for topic, kept in self.keys.items():
             if len(kept) < 2:
                 continue
-            keys = np.array([k for _, k in kept], np.int64)
+            keys = np.array([k for _, k, _ in kept], np.int64)
             first = np.zeros(len(kept), bool)
             first[np.unique(keys, axis=0, return_index=True)[1]] = True
             again = {kept[i][0] for i in np.nonzero(~first)[0]}
@@ -157,10 +157,14 @@ class Scan:
                 self._retract(topic, again)
 
     def _retract(self, topic: str, ordinals: set[int]) -> None:
-        """Take the messages ``ordinals`` of ``topic`` out of the scan, as duplicates."""
+        """Take the messages ``ordinals`` of ``topic`` out of the scan, as duplicates (from
+        its stats too: stamps, record skew)."""
         s = self.stats[topic]
         s.drop(DUPLICATE, len(ordinals))
-        self.keys[topic] = [(o, k) for o, k in self.keys[topic] if o not in ordinals]
+        gone = Counter(k[0] for o, k, _ in self.keys[topic] if o in ordinals)
+        self.keys[topic] = [e for e in self.keys[topic] if e[0] not in ordinals]
+        s.stamps = [t for t in s.stamps if not _take(gone, t)]
+        s.record_skew_max_s = max((e[2] for e in self.keys[topic]), default=0.0)
         if s.role == "odometry":
             self.odom = [o for o in self.odom if o[-1] not in ordinals]
         elif s.role == "gnss":
@@ -201,6 +205,14 @@ class Scan:
                 continue
             if not usable:
                 raise DecodeError(f"{s.topic}: none of its {s.count} messages is usable ({_why_none(s)})")
+
+
+def _take(counts: Counter, t: int) -> bool:
+    """Count one of ``t`` off ``counts``; return whether there was one."""
+    if counts[t] > 0:
+        counts[t] -= 1
+        return True
+    return False
 
 
 def _same_grid(a: tuple[tuple[int, int], float], b: tuple[tuple[int, int], float]) -> bool:
@@ -342,14 +354,16 @@ class _Scanner:
             self._unusable(s, role, str(e))
             return
         self.seen[topic][key] = True
-        self.scan.keys[topic].append((i, key))
         if role in ("tf_static", "tf"):
+            self.scan.keys[topic].append((i, key, 0.0))
             self._tf(role, msg)
             return
         hdr = _header(role, msg)
         t = key[0]
+        skew = abs(t_rec - t) * 1e-9
+        self.scan.keys[topic].append((i, key, skew))
         s.stamps.append(t)
-        s.record_skew_max_s = max(s.record_skew_max_s, abs(t_rec - t) * 1e-9)
+        s.record_skew_max_s = max(s.record_skew_max_s, skew)
         if role == "odometry":
             p, q = msg.pose.pose.position, msg.pose.pose.orientation  # type: ignore[attr-defined]
             self.scan.odom.append((t, np.array([p.x, p.y, p.z]), quat_xyzw(q), i))
