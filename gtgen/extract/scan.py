@@ -17,7 +17,7 @@ and only a role left with no usable message stops the run.
 from __future__ import annotations
 
 from collections import Counter, defaultdict
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,6 +91,42 @@ UNUSABLE_MAP = (-1, False, "", None)  # the map_meta entry of a map the plan mus
 
 
 @dataclass
+class Used:
+    """The messages of one topic a pass used, as they are read: per message its ordinal,
+    key and record-minus-header time [s]; packed into arrays by ``pack`` (40 bytes a
+    message, so a long drive's record stays small)."""
+
+    rows: list[tuple[int, int, int, int]] = field(default_factory=list)  # ordinal, stamp, crc32c, length
+    skews: list[float] = field(default_factory=list)
+    packed: tuple[NDArray, NDArray] = field(default_factory=lambda: (np.zeros((0, 4), np.int64), np.zeros(0)))
+
+    def add(self, i: int, key: Key, skew: float) -> None:
+        self.rows.append((i, *key))
+        self.skews.append(skew)
+
+    def arrays(self) -> tuple[NDArray, NDArray]:
+        """Return (rows (n, 4): ordinal, stamp, crc32c, length; skews (n,)), packed."""
+        if self.rows:
+            self.packed = (np.concatenate([self.packed[0], np.asarray(self.rows, np.int64).reshape(-1, 4)]),
+                           np.concatenate([self.packed[1], np.asarray(self.skews, np.float64)]))
+            self.rows, self.skews = [], []
+        return self.packed
+
+    def extend(self, other: Used, shift: int) -> None:
+        """Append ``other`` (the next slice's), its ordinals shifted by ``shift``."""
+        rows, skews = other.arrays()
+        mine = self.arrays()
+        self.packed = (np.concatenate([mine[0], rows + np.array([shift, 0, 0, 0])]), np.concatenate([mine[1], skews]))
+
+    def repeats(self) -> NDArray[np.bool_]:
+        """Return where a row's key is that of an earlier row."""
+        rows = self.arrays()[0]
+        first = np.zeros(len(rows), bool)
+        first[np.unique(rows[:, 1:], axis=0, return_index=True)[1]] = True
+        return ~first
+
+
+@dataclass
 class Scan:
     """What a pass saw: stats per topic, the small topics whole, stamps of the large ones.
 
@@ -110,7 +146,7 @@ class Scan:
     voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it is unusable
     map_meta: dict[str, list[tuple[int, bool, str, tuple | None]]] = field(default_factory=lambda: defaultdict(list))  # (stamp, usable, frame, (shape, resolution))
     map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution), set by ``merged``
-    keys: dict[str, list[tuple[int, Key, float]]] = field(default_factory=lambda: defaultdict(list))  # topic -> (ordinal, key, record - header [s]) of the messages used
+    used: dict[str, Used] = field(default_factory=lambda: defaultdict(Used))  # per topic
     staged: Staged | None = None  # what this slice staged (not merged by ``extend``)
     warnings: list[str] = field(default_factory=list)
 
@@ -139,32 +175,29 @@ class Scan:
             self.stamps[k].extend(v)
         for k, v in other.map_meta.items():
             self.map_meta[k].extend(v)
-        for t, v in other.keys.items():
-            self.keys[t] += [(o + shift[t], *rest) for o, *rest in v]
+        for t, v in other.used.items():
+            self.used[t].extend(v, shift[t])
         self.warnings += [w for w in other.warnings if w not in self.warnings]
 
     def drop_repeats(self) -> None:
         """Drop the messages recorded twice that different slices read (a slice drops its
         own as it reads them): each key's first message stays."""
-        for topic, kept in self.keys.items():
-            if len(kept) < 2:
-                continue
-            keys = np.array([k for _, k, _ in kept], np.int64)
-            first = np.zeros(len(kept), bool)
-            first[np.unique(keys, axis=0, return_index=True)[1]] = True
-            again = {kept[i][0] for i in np.nonzero(~first)[0]}
-            if again:
+        for topic, used in self.used.items():
+            again = used.repeats()
+            if again.any():
                 self._retract(topic, again)
 
-    def _retract(self, topic: str, ordinals: set[int]) -> None:
-        """Take the messages ``ordinals`` of ``topic`` out of the scan, as duplicates (from
-        its stats too: stamps, record skew)."""
+    def _retract(self, topic: str, again: NDArray[np.bool_]) -> None:
+        """Take the messages of ``topic`` whose rows of ``used`` are ``again`` out of the
+        scan, as duplicates (from its stats too: stamps, record skew)."""
         s = self.stats[topic]
+        rows, skews = self.used[topic].arrays()
+        ordinals = set(rows[again, 0].tolist())
         s.drop(DUPLICATE, len(ordinals))
-        gone = Counter(k[0] for o, k, _ in self.keys[topic] if o in ordinals)
-        self.keys[topic] = [e for e in self.keys[topic] if e[0] not in ordinals]
+        gone = Counter(rows[again, 1].tolist())
         s.stamps = [t for t in s.stamps if not _take(gone, t)]
-        s.record_skew_max_s = max((e[2] for e in self.keys[topic]), default=0.0)
+        s.record_skew_max_s = float(skews[~again].max(initial=0.0))
+        self.used[topic].packed = (rows[~again], skews[~again])
         if s.role == "odometry":
             self.odom = [o for o in self.odom if o[-1] not in ordinals]
         elif s.role == "gnss":
@@ -313,6 +346,8 @@ def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frame
     scan.tf = defaultdict(EdgeSamples, {e: s for e, s in scan.tf.items() if e in keep})
     for s in scan.tf.values():
         s.pack()
+    for u in scan.used.values():
+        u.arrays()
     return scan
 
 
@@ -355,13 +390,13 @@ class _Scanner:
             return
         self.seen[topic][key] = True
         if role in ("tf_static", "tf"):
-            self.scan.keys[topic].append((i, key, 0.0))
+            self.scan.used[topic].add(i, key, 0.0)
             self._tf(role, msg)
             return
         hdr = _header(role, msg)
         t = key[0]
         skew = abs(t_rec - t) * 1e-9
-        self.scan.keys[topic].append((i, key, skew))
+        self.scan.used[topic].add(i, key, skew)
         s.stamps.append(t)
         s.record_skew_max_s = max(s.record_skew_max_s, skew)
         if role == "odometry":
