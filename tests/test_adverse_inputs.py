@@ -210,6 +210,42 @@ def test_an_undecodable_message_a_sample_needs_rejects_that_sample(drive_dir, dr
     assert {k: v for k, v in snapshot(user).items() if not k.startswith("out")} == before
 
 
+@pytest.mark.parametrize("name", ["drive.mcap", "drive.bag"])
+def test_an_uncalibrated_camera_info_and_a_nan_pose_are_decode_failures(drive_dir, drive_store, user, name):
+    """The back camera's first three CameraInfo say 0 x 0 px and every 50th odometry
+    message holds a NaN: counted, not used; the calibration is the clean bag's and the
+    pose track the clean one without those stamps."""
+    seen = {"info": 0, "odom": 0}
+    nan_stamps = []
+
+    def edit(topic, t, msg):
+        if topic == "/cam_back/camera_info" and seen["info"] < 3:
+            seen["info"] += 1
+            msg = dataclasses.replace(msg, width=0, height=0)
+        elif topic == "/xracer/odometry":
+            seen["odom"] += 1
+            if seen["odom"] % 50 == 1:
+                nan_stamps.append(stamp(msg))
+                pose = msg.pose.pose
+                pose = dataclasses.replace(pose, position=dataclasses.replace(pose.position, x=float("nan")))
+                msg = dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, pose=pose))
+        yield t, msg
+
+    bag = rewrite(drive_dir / name, user / f"uncalibrated{Path(name).suffix}", edit)
+    before = snapshot(user)
+    p, out = extract(user, bag, "--workers", "1")
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = topics(out)
+    assert rows["/cam_back/camera_info"]["decode_failures"] == 3 and "not a calibration" in rows["/cam_back/camera_info"]["first_error"]
+    assert rows["/xracer/odometry"]["decode_failures"] == len(nan_stamps) == 9 and "not a pose" in rows["/xracer/odometry"]["first_error"]
+    g, clean = open_drive(out), open_drive(drive_store)
+    np.testing.assert_array_equal(g["calib/K"][:], clean["calib/K"][:])
+    t_clean = clean["poses/t_ns"][:]
+    np.testing.assert_array_equal(g["poses/t_ns"][:], t_clean[~np.isin(t_clean, nan_stamps)])
+    assert np.isfinite(g["poses/pos_odom_m"][:]).all() and np.isfinite(g["samples/pos_odom_m"][:]).all()
+    assert {k: v for k, v in snapshot(user).items() if not k.startswith("out")} == before
+
+
 def _garbage_image(msg):
     return dataclasses.replace(msg, data=np.frombuffer(b"\xff\xd8 not a jpeg", np.uint8))
 
@@ -219,9 +255,14 @@ def _short_data(msg):
     return msg
 
 
+def _uncalibrated(msg):
+    return dataclasses.replace(msg, width=0, height=0)
+
+
 @pytest.mark.parametrize("topic, spoil, needle", [
     (LEFT, _garbage_image, "does not decode"),
     (MICRO, _short_data, "values for a"),
+    ("/cam_back/camera_info", _uncalibrated, "not a calibration"),
 ])
 def test_a_topic_with_no_usable_message_stops_the_run_in_one_line(drive_dir, user, topic, spoil, needle):
     bag = rewrite(drive_dir / "drive.mcap", user / "spoilt.mcap", lambda t_, t, msg: [(t, spoil(msg) if t_ == topic else msg)])

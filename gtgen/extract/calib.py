@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.bag.decode.image import intrinsics
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.tf import TfBuffer
@@ -37,9 +38,7 @@ def pose_track(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> tuple[PoseTrack, s
     """
     tp = cfg.topics
     tol = int(cfg.extract.pose_tolerance_s * 1e9)
-    if tp.odometry is not None:
-        if not scan.odom:
-            raise TopicError(f"role 'odometry': no usable message on '{tp.odometry}'")
+    if tp.odometry is not None:  # the scan made sure it has a usable message
         t = np.array([s[0] for s in scan.odom], np.int64)
         track, ooo, dups = PoseTrack.from_unsorted(t, np.array([s[1] for s in scan.odom]), np.array([s[2] for s in scan.odom]), tol)
         source = f"odometry on '{tp.odometry}'"
@@ -144,8 +143,7 @@ def extrinsics(cfg: GtgenConfig, scan: Scan, tf: TfBuffer, image_t: NDArray) -> 
         info = scan.info.get(c)
         if info is None:
             raise TopicError(f"role 'camera_info.{c}': no CameraInfo on '{cfg.topics.cameras[c].info}'")
-        Kraw = np.asarray(getattr(info, "k", None) if hasattr(info, "k") else info.K, dtype=np.float64).reshape(3, 3)
-        Ks.append(rescale_K(Kraw, (int(info.width), int(info.height)), (W, H)))
+        Ks.append(rescale_K(*intrinsics(info), (W, H)))
         frame = scan.frames.get(f"camera.{c}") or frame_id(info.header.frame_id)
         T, ok = tf.lookup(cfg.topics.base_frame, frame, image_t[:, c_i])
         if not ok.all():

@@ -25,9 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import check_gridmap
-from gtgen.bag.decode.image import decode_image
+from gtgen.bag.decode.image import decode_image, intrinsics
 from gtgen.bag.decode.pointcloud import decode_pointcloud
-from gtgen.bag.decode.tf import frame_id, quat_xyzw, transform_matrix
+from gtgen.bag.decode.tf import frame_id, odometry_pose, quat_xyzw, transform_matrix
 from gtgen.bag.reader import BagSet, Record, stamp_ns
 from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
 from gtgen.config import GtgenConfig
@@ -228,12 +228,17 @@ class Scan:
             topic_of[role].drop(SIZE_CHANGED, len(other))
 
     def require_usable(self) -> None:
-        """Raise DecodeError for the first large role left with no usable message."""
+        """Raise DecodeError for the first role the drive needs that is left with no
+        usable message (GNSS and TF are judged where they are used)."""
         for s in self.stats.values():
             if s.role.startswith("map."):
                 usable = any(m[1] for m in self.map_meta.get(s.role, []))
             elif is_large(s.role):
                 usable = any(t >= 0 for t in self.stamps.get(s.role, []))
+            elif s.role.startswith("camera_info."):
+                usable = s.role.split(".")[1] in self.info
+            elif s.role == "odometry":
+                usable = bool(self.odom)
             else:
                 continue
             if not usable:
@@ -400,8 +405,7 @@ class _Scanner:
         s.stamps.append(t)
         s.record_skew_max_s = max(s.record_skew_max_s, skew)
         if role == "odometry":
-            p, q = msg.pose.pose.position, msg.pose.pose.orientation  # type: ignore[attr-defined]
-            self.scan.odom.append((t, np.array([p.x, p.y, p.z]), quat_xyzw(q), i))
+            self.scan.odom.append((t, *data, i))
         elif role == "gnss":
             self._gnss(t, msg, i)
         elif role.startswith("camera_info."):
@@ -427,14 +431,18 @@ class _Scanner:
         return stamp_ns(_header(role, msg))
 
     def _decoded(self, role: str, msg: object, msgtype: str) -> object:
-        """Return what a large message decodes to (an image, points, a GridMap's grid), so
-        the plan never picks one that does not; raise DecodeError."""
+        """Return what a message decodes to (an image, points, a GridMap's grid, a pose,
+        intrinsics), so the plan never picks one that does not; raise DecodeError."""
         if role.startswith("camera."):
             return decode_image(msg, msgtype)
         if role == "voxel_map":
             return decode_pointcloud(msg)
         if role.startswith("map."):
             return check_gridmap(msg, self.layer_names)
+        if role == "odometry":
+            return odometry_pose(msg)
+        if role.startswith("camera_info."):
+            return intrinsics(msg)
         return None
 
     def _unusable(self, s: TopicStats, role: str, err: str | None) -> None:

@@ -1,4 +1,5 @@
-"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them."""
+"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them; read
+the intrinsics of a sensor_msgs/CameraInfo."""
 
 from __future__ import annotations
 
@@ -44,3 +45,15 @@ def resize_image(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.
     from PIL import Image
 
     return np.asarray(Image.fromarray(img).resize((width, height), Image.BILINEAR))
+
+
+def intrinsics(info: object) -> tuple[NDArray[np.float64], tuple[int, int]]:
+    """Return the intrinsics K (3, 3) of a CameraInfo (ROS 1 or 2 field names) and the
+    (width, height) [px] they are for; raise DecodeError for an uncalibrated one (a size
+    of 0, a K that is not finite or has no focal length), whose K would rescale into
+    infinities."""
+    K = np.asarray(info.k if hasattr(info, "k") else info.K, dtype=np.float64).reshape(3, 3)  # type: ignore[attr-defined]
+    size = (int(info.width), int(info.height))  # type: ignore[attr-defined]
+    if min(size) < 1 or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DecodeError(f"CameraInfo of {size[0]} x {size[1]} px with focal lengths {K[0, 0]}, {K[1, 1]} is not a calibration")
+    return K, size
