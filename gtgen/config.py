@@ -7,8 +7,9 @@ test keeps it equal to these defaults.
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -17,10 +18,13 @@ from gtgen.errors import ConfigError, InputNotFoundError
 
 RANGES = ("micro", "short")
 CAMERAS = ("front", "left", "right", "back")
+MAX_SPAN_S = 86_400.0  # longest time span a setting takes [s]: a day; stamps are int64 ns, and a window beyond any drive means nothing
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # a setting is a number a drive can have: inf or nan in a window or threshold reads as
+    # "everything" or "nothing" silently, or overflows when converted to nanoseconds
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class GridSpec(_Model):
@@ -130,8 +134,8 @@ class SynthConfig(_Model):
     gnss_rate_hz: float = Field(10.0, gt=0, description="GNSS fix rate [Hz]")
     camera_rate_hz: float = Field(5.0, gt=0, description="camera frame rate, all four [Hz]")
     voxel_rate_hz: float = Field(2.0, gt=0, description="voxel map rate [Hz]")
-    image_width: int = Field(160, ge=16, description="rendered image width [px]")
-    image_height: int = Field(100, ge=16, description="rendered image height [px]")
+    image_width: int = Field(160, ge=16, le=4096, description="rendered image width [px]")
+    image_height: int = Field(100, ge=16, le=4096, description="rendered image height [px]")
     camera_hfov_deg: float = Field(100.0, gt=10, lt=170, description="horizontal field of view [deg]")
     lidar_height_m: float = Field(2.0, gt=0, description="lidar height above the base [m]")
     lidar_range_m: float = Field(90.0, gt=1, description="maximum lidar range [m]")
@@ -142,7 +146,7 @@ class SynthConfig(_Model):
     drift_yaw_deg_per_100m: float = Field(0.2, ge=0, description="odometry heading drift")
     drift_z_m_per_s: float = Field(0.004, ge=0, description="odometry z drift rate [m/s]")
     gnss_bias_m: float = Field(1.5, ge=0, description="std of the slowly varying GNSS bias [m]")
-    gnss_bias_tau_s: float = Field(120.0, gt=0, description="correlation time of the bias [s]")
+    gnss_bias_tau_s: float = Field(120.0, gt=0, le=MAX_SPAN_S, description="correlation time of the bias [s]")
     gnss_noise_m: float = Field(0.3, ge=0, description="white GNSS noise std per axis [m]")
     geoid_offset_m: float = Field(-33.0, description="NAVD88 -> ellipsoid height offset [m]")
     dem_tile_m: int = Field(400, ge=50, description="DEM tile edge [m]")
@@ -157,9 +161,9 @@ class SynthConfig(_Model):
     bushes_per_ha: float = Field(0.0, ge=0, description="bush density (0.5-1.5 m tall, 1-2.5 m radius) [1/ha]")
     gnss_jumps: int = Field(0, ge=0, description="GNSS multipath events: the fixes jump by gnss_jump_m for gnss_jump_s")
     gnss_jump_m: float = Field(4.0, ge=0, description="size of a GNSS multipath jump [m]")
-    gnss_jump_s: float = Field(5.0, gt=0, description="duration of a GNSS multipath jump [s]")
+    gnss_jump_s: float = Field(5.0, gt=0, le=MAX_SPAN_S, description="duration of a GNSS multipath jump [s]")
     gnss_outages: int = Field(0, ge=0, description="GNSS outages: no fix for gnss_outage_s")
-    gnss_outage_s: float = Field(20.0, gt=0, description="duration of a GNSS outage [s]")
+    gnss_outage_s: float = Field(20.0, gt=0, le=MAX_SPAN_S, description="duration of a GNSS outage [s]")
     terrain_changes: int = Field(0, ge=0, description="patches on the path where the terrain changed since the DEM survey (a cut, a berm)")
     terrain_change_m: float = Field(1.5, description="height of a terrain change, + berm / - cut [m]")
     terrain_change_radius_m: float = Field(12.0, gt=0, description="radius of a terrain change [m]")
@@ -181,21 +185,21 @@ class ExtractConfig(_Model):
     """Bags -> drive store, and sample selection."""
 
     stride_m: float = Field(2.0, gt=0, description="travel between samples [m]")
-    image_skew_s: float = Field(0.05, ge=0, description="max image-to-sample time skew [s]")
-    map_skew_s: float = Field(0.1, ge=0, description="max GridMap-to-sample time skew [s]")
-    voxel_skew_s: float = Field(0.3, ge=0, description="max voxel-map-to-sample skew [s]; the voxel map is stored with its pose, so a few hundred ms is harmless")
-    pose_tolerance_s: float = Field(0.1, ge=0, description="max gap to an odometry message before a pose is refused [s]")
-    map_rate_hz: float = Field(2.0, gt=0, description="GridMaps kept per range [Hz]; they overlap heavily")
-    image_width: int = Field(160, ge=8, description="stored image width [px]")
-    image_height: int = Field(100, ge=8, description="stored image height [px]")
-    record_skew_warn_s: float = Field(1.0, ge=0, description="report header vs record time differences above this [s]")
+    image_skew_s: float = Field(0.05, ge=0, le=MAX_SPAN_S, description="max image-to-sample time skew [s]")
+    map_skew_s: float = Field(0.1, ge=0, le=MAX_SPAN_S, description="max GridMap-to-sample time skew [s]")
+    voxel_skew_s: float = Field(0.3, ge=0, le=MAX_SPAN_S, description="max voxel-map-to-sample skew [s]; the voxel map is stored with its pose, so a few hundred ms is harmless")
+    pose_tolerance_s: float = Field(0.1, ge=0, le=MAX_SPAN_S, description="max gap to an odometry message before a pose is refused [s]")
+    map_rate_hz: float = Field(2.0, ge=1 / MAX_SPAN_S, description="GridMaps kept per range [Hz]; they overlap heavily")
+    image_width: int = Field(160, ge=8, le=4096, description="stored image width [px]")
+    image_height: int = Field(100, ge=8, le=4096, description="stored image height [px]")
+    record_skew_warn_s: float = Field(1.0, ge=0, le=MAX_SPAN_S, description="report header vs record time differences above this [s]")
 
 
 class FuseConfig(_Model):
     """Hindsight fusion of the X-Racer maps in a window around each sample."""
 
-    window_s: float = Field(60.0, gt=0, description="future window after the sample [s]")
-    past_s: float = Field(0.0, ge=0, description="past window before the sample [s]")
+    window_s: float = Field(60.0, gt=0, le=MAX_SPAN_S, description="future window after the sample [s], at most a day")
+    past_s: float = Field(0.0, ge=0, le=MAX_SPAN_S, description="past window before the sample [s], at most a day")
     min_conf: float = Field(0.1, ge=0, le=1, description="elevation used where confidence > this")
     risk_min_conf: float = Field(0.5, ge=0, le=1, description="risk used where confidence >= this")
     tile_cells: int = Field(128, ge=8, le=4096, description="accumulator tile edge [cells]")
@@ -220,7 +224,7 @@ class DemConfig(_Model):
     drift_allowance: float = Field(0.01, ge=0, description="the correction allowed grows by this per metre travelled since the last kept sample (odometry drift) [m/m]")
     disagreement_m: float = Field(0.5, gt=0, description="an observed ground cell disagrees with the aligned DEM when they differ by more than this [m]")
     max_disagreement: float = Field(0.1, ge=0, le=1, description="reject a sample when more than this share of its observed ground cells disagree with the aligned DEM")
-    gnss_window_s: float = Field(10.0, gt=0, description="GNSS fixes within this of a sample's time judge its placement [s]")
+    gnss_window_s: float = Field(10.0, gt=0, le=MAX_SPAN_S, description="GNSS fixes within this of a sample's time judge its placement [s]")
     min_window_fixes: int = Field(10, ge=1, description="fewest usable fixes in the window for the GNSS check (fewer: GNSS is not consulted)")
     max_gnss_offset_m: float = Field(5.0, gt=0, description="reject a sample whose placement puts the window's fixes farther than this (median) from the track [m]")
     judge_within_m: float = Field(20.0, gt=0, description="tiles are judged by samples whose prior is a kept placement at most this far back [m]")
@@ -242,7 +246,7 @@ class ShardsConfig(_Model):
 
     val_fraction: float = Field(0.25, ge=0, lt=1, description="share of geography blocks held out")
     split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")
-    max_voxel_points: int = Field(60000, ge=1, description="voxel-map points kept per map: all of them near the vehicle, and beyond the radius that keeps them within this count one per far_voxel_m voxel")
+    max_voxel_points: int = Field(60000, ge=1, le=10_000_000, description="voxel-map points kept per map: all of them near the vehicle, and beyond the radius that keeps them within this count one per far_voxel_m voxel")
     far_voxel_m: float = Field(0.8, gt=0, description="voxel edge of the far part of a voxel map that exceeds max_voxel_points [m]")
 
 
@@ -313,24 +317,73 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 def _format_validation(err: ValidationError) -> str:
     first = err.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"]) or "<root>"
+    parts = tuple(str(p) for p in first["loc"])
+    loc = ".".join(parts) or "<root>"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    if first["type"] == "extra_forbidden":
+        return f"config key '{loc}' is not a gtgen setting; {_nearest_key(parts)}{more}"
     val = first.get("input")
     shown = "" if isinstance(val, dict) else f" = {val!r}"
-    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return f"config key '{loc}'{shown}: {first['msg']}{more}"
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    """Return the mapping in YAML file ``path``."""
+def _nearest_key(parts: tuple[str, ...]) -> str:
+    """Return 'did you mean ...?' with the valid key nearest the unknown ``parts``, or the
+    keys its section takes."""
+    model: type[BaseModel] = GtgenConfig
+    path: list[str] = []
+    rest = list(parts[:-1])
+    while rest:
+        name = rest.pop(0)
+        ann = model.model_fields[name].annotation
+        path.append(name)
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            model = ann
+        else:  # a mapping of models (topics.cameras): the next part is its key
+            model = get_args(ann)[-1]
+            path.append(rest.pop(0))
+    prefix = "".join(f"{p}." for p in path)
+    keys = list(model.model_fields)
+    near = difflib.get_close_matches(parts[-1], keys, n=1, cutoff=0.6)
+    if near:
+        return f"did you mean '{prefix}{near[0]}'?"
+    return f"{prefix.rstrip('.') or 'the top level'} takes: {', '.join(keys)}"
+
+
+def read_yaml(path: Path, what: str = "config file") -> dict[str, Any]:
+    """Return the mapping in YAML file ``path`` (``what`` names the file in errors)."""
+    if not path.exists():
+        raise InputNotFoundError(f"{what} '{path}' does not exist")
     if not path.is_file():
-        raise InputNotFoundError(f"config file '{path}' does not exist")
+        raise ConfigError(f"{what} '{path}' is a folder; expected a YAML file")
     try:
         data = yaml.safe_load(path.read_text()) or {}
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{what} '{path}' is not a text file: byte {err.start} is not UTF-8") from err
     except yaml.YAMLError as err:
-        raise ConfigError(f"config file '{path}' is not valid YAML: {err}".splitlines()[0]) from err
+        raise ConfigError(f"{what} '{path}' is not valid YAML: {_yaml_problem(err)}") from err
     if not isinstance(data, dict):
-        raise ConfigError(f"config file '{path}' must hold a mapping, got {type(data).__name__}")
+        raise ConfigError(f"{what} '{path}' must hold a mapping of keys to values, got a {type(data).__name__}")
     return data
+
+
+def _yaml_problem(err: yaml.YAMLError) -> str:
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    mark = getattr(err, "problem_mark", None)
+    return problem + (f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "")
+
+
+def check_value(key: str, value: Any) -> Any:
+    """Return ``value`` as config key ``key`` ('section.name') takes it; raise ConfigError
+    saying what the key takes (a command-line option is held to its key's bounds)."""
+    section, name = key.split(".")
+    model = getattr(GtgenConfig(), section)
+    try:
+        setattr(model, name, value)
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise ConfigError(f"{value!r} is not a valid {key}: {first['msg']}") from err
+    return getattr(model, name)
 
 
 def build_config(*layers: dict[str, Any]) -> GtgenConfig:

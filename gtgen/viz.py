@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,12 @@ from gtgen.runtime.output import save_figure
 from gtgen.storage.dataset import DatasetStore
 
 REGION_COLORS = np.array([[0.85, 0.85, 0.85], [0.98, 0.59, 0.15], [0.59, 0.14, 0.57], [0.26, 0.43, 0.69]])
+COLORBAR_LABELS = {"terrain": "elevation [m, rel. base z at t]", "magma": "risk [0..1]", "viridis": "confidence [0..1]"}
+
+
+def _utc(t_ns: int) -> str:
+    """Return a stamp as ISO 8601 UTC to the millisecond (epoch seconds mean nothing to a reader)."""
+    return datetime.fromtimestamp(int(t_ns) // 1_000_000 / 1e3, tz=timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", " UTC")
 
 
 def forward_up(a: np.ndarray) -> np.ndarray:
@@ -61,11 +68,17 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
             im = ax.imshow(forward_up(arr), cmap=cmap, vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
             ax.plot([0], [0], marker="^", color="red", markersize=8)
             ax.set_title(f"{r}: {cols[c_i]}", fontsize=9)
+            ax.set_xlabel("y left [m]", fontsize=7)
+            ax.set_ylabel("x forward [m]", fontsize=7)
             ax.tick_params(labelsize=7)
             if cmap is not None:
-                fig.colorbar(im, ax=ax, fraction=0.046)
-    t = ds.meta("t_ns")[index]
-    fig.suptitle(f"{dataset.name} sample {index}  t={t / 1e9:.2f} s  fitness={ds.meta('icp_fitness')[index]:.3f}  "
+                cb = fig.colorbar(im, ax=ax, fraction=0.046)
+                cb.set_label(COLORBAR_LABELS[cmap], fontsize=7)
+                cb.ax.tick_params(labelsize=7)
+    t_ns, drive = ds.meta("t_ns"), ds.meta("drive")
+    t, t0 = int(t_ns[index]), int(t_ns[drive == drive[index]].min())
+    fig.suptitle(f"{dataset.name} sample {index}  t = {(t - t0) / 1e9:.2f} s after the drive's first sample ({_utc(t)})  "
+                 f"ICP fitness {ds.meta('icp_fitness')[index]:.3f}  "
                  "(forward up; regions: orange obs. past/current, purple obs. future, blue unobserved/DEM, grey none)")
     fig.tight_layout()
     save_figure(fig, out, overwrite, dpi=70)

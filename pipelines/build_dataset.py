@@ -24,7 +24,7 @@ from typing import Any
 
 from gtgen import __version__
 from gtgen.bag.reader import SUFFIXES, hash_bag
-from gtgen.config import GtgenConfig
+from gtgen.config import GtgenConfig, read_yaml
 from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dataset.merge import merging
 from gtgen.dem.tiles import TileIndex, default_dem_dir
@@ -105,13 +105,7 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
 
 def _manifest(src: Path) -> dict[str, list[Path]]:
     """Return {drive name: bags} of a manifest file, or raise ConfigError saying what is wrong."""
-    import yaml
-
-    try:
-        data = yaml.safe_load(src.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"manifest '{src}' is not valid YAML: {err}".splitlines()[0]) from err
-    entries = data.get("drives") if isinstance(data, dict) else None
+    entries = read_yaml(src, "manifest").get("drives")
     if not isinstance(entries, dict) or not all(isinstance(b, list) and b for b in entries.values()):
         raise ConfigError(f"manifest '{src}' must hold 'drives: {{name: [bag, ...]}}' (a mapping of drive names to lists of bags)")
     out = {}

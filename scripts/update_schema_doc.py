@@ -1,25 +1,80 @@
-"""Rewrite the files generated from code: the tables of data_schema.md (from the formats in
-gtgen/storage/schema.py), configs/default.yaml (from gtgen.config) and configs/presets/
-(from gtgen.train.presets)."""
+"""Rewrite the files generated from code: the tables of data_schema.md (the arrays and the
+store versions from the formats in gtgen/storage/schema.py, the dataset's attributes from
+its models there, the codes from gtgen/codes.py), configs/default.yaml (from gtgen.config)
+and configs/presets/ (from gtgen.train.presets)."""
 
 from __future__ import annotations
 
 import re
 import sys
+import typing
 from pathlib import Path
 
-from gtgen.storage.schema import DATASET, DRIVE, FUSED
+from pydantic import BaseModel
+
+from gtgen import codes
+from gtgen.storage.schema import DATASET, DRIVE, FORMATS, FUSED, DatasetAttrs
 from gtgen.storage.specs import markdown_table
 
-TABLES = {"drive": list(DRIVE.arrays), "fused": list(FUSED.arrays), "dataset": list(DATASET.arrays)}
+
+def codes_table() -> str:
+    """Return every stored code (reasons, regions, splits) as a markdown table."""
+    rows = ["| kind | code | name | meaning |", "|---|---|---|---|"]
+    for kind, table in (("reason", codes.REASONS), ("region", codes.REGIONS), ("split", codes.SPLITS)):
+        for code, text in table.items():
+            name, _, meaning = text.partition(": ")
+            rows.append(f"| {kind} | {code} | `{name}` | {meaning or '-'} |")
+    return "\n".join(rows)
+
+
+def attribute_rows(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str, str]]:
+    """Return (name, type, meaning) of every field of ``model``, and of the models it
+    holds in lists (``drives[i].name``), as the attribute names a reader writes."""
+    rows = []
+    for name, f in model.model_fields.items():
+        ann = f.annotation
+        inner = typing.get_args(ann)[0] if typing.get_origin(ann) is list else None
+        held = inner if isinstance(inner, type) and issubclass(inner, BaseModel) else None
+        shown = f"list of {held.__name__}" if held else _type_name(ann)
+        meaning = f.description or (f"`{f.default}`" if f.default is not None and not f.is_required() and f.default_factory is None else "-")
+        rows.append((prefix + name, shown, meaning))
+        if held is not None:
+            rows += attribute_rows(held, f"{prefix}{name}[{'ij'[prefix.count('[')]}].")
+    return rows
+
+
+def _type_name(ann: object) -> str:
+    return ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", r"\|")  # a bare | ends a markdown table cell
+
+
+def attributes_table() -> str:
+    """Return the dataset's attributes (``DatasetAttrs``) as a markdown table."""
+    rows = ["| attribute | type | meaning |", "|---|---|---|"]
+    rows += [f"| `{n}` | {_cell(t)} | {_cell(m)} |" for n, t, m in attribute_rows(DatasetAttrs)]
+    return "\n".join(rows)
+
+
+BLOCKS = {
+    "drive": lambda: markdown_table(list(DRIVE.arrays)),
+    "fused": lambda: markdown_table(list(FUSED.arrays)),
+    "dataset": lambda: markdown_table(list(DATASET.arrays)),
+    "codes": codes_table,
+    "dataset-attrs": attributes_table,
+}
 
 
 def render(text: str) -> str:
-    """Return ``text`` with every generated table block replaced by the code's version."""
-    for name, specs in TABLES.items():
+    """Return ``text`` with every generated block and every store heading's version
+    replaced by the code's."""
+    for name, make in BLOCKS.items():
         pat = re.compile(rf"(<!-- BEGIN {name} -->\n)(?:.*?\n)?(<!-- END {name} -->)", re.S)
-        text = pat.sub(lambda m, specs=specs: m.group(1) + markdown_table(specs) + "\n" + m.group(2), text)
-    return text
+        text = pat.sub(lambda m, make=make: m.group(1) + make() + "\n" + m.group(2), text)
+    return re.sub(r'(attribute `store = "([\w-]+)"`, `version = )\d+',
+                  lambda m: m.group(1) + str(FORMATS[m.group(2)].version), text)
 
 
 def write_configs(root: Path) -> None:

@@ -1,4 +1,5 @@
-"""Make tiny bags for tests: rewrite a drive's MCAP with edits, through rosbags' own writer."""
+"""Make tiny bags for tests: rewrite a drive's MCAP or ROS 1 bag with edits, through rosbags'
+own writers."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import shutil
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from rosbags.rosbag1 import Reader as Reader1
+from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Reader, Writer
 from rosbags.rosbag2.enums import StoragePlugin
 
@@ -35,6 +38,24 @@ def rewrite_mcap(src: Path, dst: Path, edit: Edit) -> Path:
     mcap.rename(dst)
     shutil.rmtree(tmp)
     return dst
+
+
+def rewrite_bag(src: Path, dst: Path, edit: Edit) -> Path:
+    """Write the ROS 1 bag ``dst`` with every message of the ROS 1 bag ``src`` passed
+    through ``edit`` (as ``rewrite_mcap``; messages carry ROS 1 field names)."""
+    store = typestore(True)
+    with Reader1(src) as r, Writer1(dst) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=store) for c in r.connections}
+        for c, t, raw in r.messages():
+            msg = store.deserialize_ros1(raw, c.msgtype)
+            for t2, m2 in edit(c.topic, t, msg):
+                w.write(conns[c.id], t2, store.serialize_ros1(m2, c.msgtype))
+    return dst
+
+
+def rewrite(src: Path, dst: Path, edit: Edit) -> Path:
+    """Rewrite ``src`` into ``dst`` of the same flavour (.mcap or ROS 1 .bag) through ``edit``."""
+    return (rewrite_bag if src.suffix == ".bag" else rewrite_mcap)(src, dst, edit)
 
 
 def split_mcap(src: Path, first: Path, second: Path, after_s: float) -> tuple[Path, Path]:

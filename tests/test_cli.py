@@ -21,10 +21,37 @@ def test_version_and_module_entry():
         assert cmd in p.stdout
 
 
-def test_help_has_examples():
-    for cmd in ("synth", "extract", "fuse", "dem-align", "report", "viz"):
-        p = run_cli(cmd, "--help")
-        assert p.returncode == 0 and "Examples" in p.stdout, cmd
+def _commands(cmd, path=()):
+    """Yield (words, click command) of ``cmd`` and of every command and subcommand under it."""
+    yield path, cmd
+    for name, sub in getattr(cmd, "commands", {}).items():
+        yield from _commands(sub, (*path, name))
+
+
+def test_help_of_every_command_shows_its_examples_one_per_line_and_types_in_words():
+    """At 80 columns, as most terminals are: each example of the docstring's fenced block
+    is one whole line of the help, and no parameter type reads like a Python annotation."""
+    import re
+
+    import typer
+    from typer.testing import CliRunner
+
+    from gtgen.cli import app
+
+    seen = 0
+    for words, cmd in _commands(typer.main.get_command(app)):
+        block = re.search(r"```\n(.*?)```", cmd.help, re.S)
+        assert block, f"'gtgen {' '.join(words)}' has no fenced block of examples in its help"
+        examples = [e.strip() for e in block.group(1).splitlines()]
+        assert examples and all(e.startswith("gtgen ") and len(e) <= 72 for e in examples), words
+        p = CliRunner().invoke(app, [*words, "--help"], env={"COLUMNS": "80"}, prog_name="gtgen")
+        assert p.exit_code == 0, (words, p.output)
+        lines = [line.strip() for line in p.stdout.splitlines()]
+        assert all(e in lines for e in examples), (words, examples, p.stdout)
+        assert sum(line.startswith("gtgen ") for line in lines) == len(examples), words
+        assert not re.search(r"<\w+>|list\[|None", p.stdout), (words, p.stdout)
+        seen += 1
+    assert seen == 13  # gtgen, its ten commands and export's two
 
 
 def test_bad_config_value_is_one_line(tmp_path):
@@ -42,6 +69,7 @@ def test_dem_align_report_viz_through_the_cli(dataset, drive_store, tmp_path):
     p = run_cli("report", tmp_path / "ds.zarr", "-o", tmp_path / "rep")
     assert p.returncode == 0, p.stderr
     assert "DEM alignment error" in p.stdout and (tmp_path / "rep" / "qa_overview.png").is_file()
+    assert "None" not in p.stdout and "n/a %" not in p.stdout  # a missing value reads n/a, without a unit
     p = run_cli("viz", tmp_path / "ds.zarr", "--sample", "2", "-o", tmp_path / "s.png")
     assert p.returncode == 0 and (tmp_path / "s.png").stat().st_size > 10_000
     p = run_cli("viz", tmp_path / "ds.zarr", "--sample", "100000", "-o", tmp_path / "s.png")
@@ -56,3 +84,12 @@ def test_usage_errors_print_usage_and_exit_2(args, tmp_path):
     assert p.returncode == 2, (args, p.returncode, p.stderr)
     assert "Traceback" not in p.stderr + p.stdout
     assert "Usage: gtgen " in " ".join((p.stderr + p.stdout).split())
+
+
+def test_a_missing_table_value_reads_n_a(capsys):
+    from gtgen.cli.app import na, table
+
+    table("t", [("given", 0.5), ("missing", None)])
+    out = capsys.readouterr().out
+    assert "0.5" in out and "n/a" in out and "None" not in out
+    assert na(None, " m") == "n/a" and na(0.25, " m") == "0.25 m"

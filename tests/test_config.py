@@ -44,7 +44,10 @@ def test_partial_override_keeps_other_defaults(tmp_path: Path):
     "text, needle",
     [
         ("fuse:\n  window_s: -1\n", "fuse.window_s"),
-        ("fuse:\n  windw_s: 3\n", "fuse.windw_s"),
+        ("fuse:\n  windw_s: 3\n", "config key 'fuse.windw_s' is not a gtgen setting; did you mean 'fuse.window_s'?"),
+        ("fuze:\n  window_s: 3\n", "config key 'fuze' is not a gtgen setting; did you mean 'fuse'?"),
+        ("dem:\n  qqq: 3\n", "config key 'dem.qqq' is not a gtgen setting; dem takes: dir, min_fitness"),
+        ("fuse:\n  window_s: .inf\n", "config key 'fuse.window_s' = inf: Input should be a finite number"),
         ("grids:\n  micro:\n    resolution_m: 0\n", "grids.micro.resolution_m"),
         ("synth:\n  speed_min_mps: 9\n  speed_max_mps: 5\n", "speed_max_mps"),
         ("- a\n- b\n", "must hold a mapping"),

@@ -6,7 +6,9 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel
 
+from gtgen import codes
 from gtgen.storage import schema as sc
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,6 +22,32 @@ def test_data_schema_md_matches_the_code():
     assert mod.render(doc) == doc, "data_schema.md is stale: run python scripts/update_schema_doc.py"
     for s in sc.DATASET.arrays:
         assert f"| `{s.path}` | {s.dtype} |" in doc
+
+
+def _fields(model, prefix=""):
+    """Every attribute name a dataset holds, nested lists of models as ``drives[i].name``."""
+    import typing
+
+    for name, f in model.model_fields.items():
+        yield prefix + name
+        args = typing.get_args(f.annotation)
+        if typing.get_origin(f.annotation) is list and isinstance(args[0], type) and issubclass(args[0], BaseModel):
+            yield from _fields(args[0], f"{prefix}{name}[{'ij'[prefix.count('[')]}].")
+
+
+def test_data_schema_md_names_every_code_attribute_and_version():
+    """Every reason, region and split code, every dataset attribute (drives[i].suspect_tiles
+    too) and each store's version are in data_schema.md."""
+    doc = (ROOT / "data_schema.md").read_text()
+    for kind, table in (("reason", codes.REASONS), ("region", codes.REGIONS), ("split", codes.SPLITS)):
+        for code, text in table.items():
+            assert f"| {kind} | {code} | `{text.split(':')[0]}` |" in doc, (kind, code)
+    names = list(_fields(sc.DatasetAttrs))
+    assert "drives[i].suspect_tiles" in names and "drives[i].bags[j].sha256" in names
+    for name in names:
+        assert f"| `{name}` |" in doc, name
+    for f in sc.FORMATS.values():
+        assert f'attribute `store = "{f.kind}"`, `version = {f.version}`' in doc, f.kind
 
 
 def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset, cfg):

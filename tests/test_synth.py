@@ -169,14 +169,15 @@ def test_a_dem_tile_border_crosses_the_drive(drive_dir, cfg):
 @pytest.mark.parametrize(
     "args, needle",
     [
-        (["--duration", "-3"], "--duration -3"),
-        (["--format", "zip"], "--format 'zip' unknown"),
+        (["--duration", "-3"], "Invalid value for '--duration': -3.0 is not a valid synth.duration_s"),
+        (["--format", "zip"], "Invalid value for '--format': 'zip' is not a valid synth.formats: Input should be 'mcap', 'bag' or 'both'"),
     ],
 )
 def test_bad_arguments_one_line_error(tmp_path, args, needle):
     p = run_cli("synth", tmp_path / "o", *args)
-    assert p.returncode != 0
-    assert needle in p.stderr and len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr
+    usage, error = p.stderr.strip().splitlines()  # a usage error: the usage line, then the error
+    assert p.returncode == 2 and usage.startswith("Usage: gtgen synth") and needle in error and "Traceback" not in p.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_unwritable_out(tmp_path):

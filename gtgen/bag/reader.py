@@ -16,6 +16,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import google_crc32c
+
 from gtgen.bag.mcap import McapFile, profile
 from gtgen.bag.msgdefs import typestore, typestore_of
 from gtgen.errors import BagError, InputNotFoundError
@@ -25,6 +27,8 @@ log = logging.getLogger(__name__)
 SUFFIXES = (".bag", ".mcap", ".db3")
 
 Message = tuple[str, str, int, object | None, str | None]  # topic, msgtype, record time [ns], message, error
+Digest = tuple[int, int]  # (crc32c, length) of a message's serialized bytes
+Record = tuple[str, str, int, object | None, str | None, Digest | None]  # a Message and its digest
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,13 @@ def _first_line(err: BaseException) -> str:
     return str(err).splitlines()[0] if str(err) else type(err).__name__
 
 
+def digest(raw: bytes | memoryview) -> Digest:
+    """Return the (crc32c, length) of serialized message bytes: with the header stamp, what
+    tells a message recorded twice from another (crc32c: about 8 GB/s with the copy that
+    google_crc32c needs of a memoryview)."""
+    return google_crc32c.value(raw if isinstance(raw, bytes) else bytes(raw)), len(raw)
+
+
 class _Rosbags:
     """Bags read through rosbags' AnyReader (with their index)."""
 
@@ -74,7 +85,7 @@ class _Rosbags:
             return None
         return int(self.reader.start_time), int(self.reader.end_time)
 
-    def messages(self, topics: set[str], start: int | None, stop: int | None) -> Iterator[Message]:
+    def messages(self, topics: set[str], start: int | None, stop: int | None, digests: bool) -> Iterator[Record]:
         conns = [c for c in self.reader.connections if c.topic in topics]
         if not conns:
             return
@@ -86,10 +97,11 @@ class _Rosbags:
                 return
             except Exception as err:  # noqa: BLE001 - damaged chunks raise various errors
                 raise BagError(f"{_names(self.paths)} is truncated or corrupt: {_first_line(err)}") from err
+            d = digest(raw) if digests else None
             try:
-                yield conn.topic, conn.msgtype, t, self.reader.deserialize(raw, conn.msgtype), None
+                yield conn.topic, conn.msgtype, t, self.reader.deserialize(raw, conn.msgtype), None, d
             except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
-                yield conn.topic, conn.msgtype, t, None, _first_line(err)
+                yield conn.topic, conn.msgtype, t, None, _first_line(err), d
 
 
 class _Chunked:
@@ -118,16 +130,17 @@ class _Chunked:
         spans = [f.time_range() for f in self.files]
         return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
 
-    def messages(self, topics: set[str], start: int | None, stop: int | None) -> Iterator[Message]:
+    def messages(self, topics: set[str], start: int | None, stop: int | None, digests: bool) -> Iterator[Record]:
         streams = [f.messages(topics, start, stop) for f in self.files]
         try:
             for t, topic, name, data in heapq.merge(*streams, key=lambda x: x[0]):
+                d = digest(data) if digests else None
                 try:
                     msg = self.decode(data, name)
                 except Exception as err:  # noqa: BLE001 - a bad message is counted, not fatal
-                    yield topic, name, t, None, _first_line(err)
+                    yield topic, name, t, None, _first_line(err), d
                     continue
-                yield topic, name, t, msg, None
+                yield topic, name, t, msg, None, d
         except BagError:
             raise
         except Exception as err:  # noqa: BLE001 - damaged chunks raise various errors
@@ -227,7 +240,15 @@ class BagSet:
         that fails to decode yields ``None`` and the error text, so callers can count
         decode failures instead of stopping.
         """
-        streams = [s.messages(set(topics), start, stop) for s in self._sources]
+        for r in self._stream(topics, start, stop, False):
+            yield r[:5]
+
+    def records(self, topics: list[str], start: int | None = None, stop: int | None = None) -> Iterator[Record]:
+        """Yield what ``messages`` yields and the ``digest`` of each message's bytes."""
+        yield from self._stream(topics, start, stop, True)
+
+    def _stream(self, topics: list[str], start: int | None, stop: int | None, digests: bool) -> Iterator[Record]:
+        streams = [s.messages(set(topics), start, stop, digests) for s in self._sources]
         yield from streams[0] if len(streams) == 1 else heapq.merge(*streams, key=lambda m: m[2])
 
 

@@ -11,25 +11,104 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, get_args
 
 import typer
+from typer.core import TyperGroup
 
 from gtgen import __version__
-from gtgen.errors import GtgenError
+from gtgen.errors import ConfigError, GtgenError
+
+
+class Group(TyperGroup):
+    """The command group whose help names each parameter's type in words (``PATH...``,
+    ``NUMBER``), as the usage line does, where typer would print the Python annotation
+    (``<list[Path]>``) and ``<bool>`` beside every flag."""
+
+    def __init__(self, **attrs: Any) -> None:
+        super().__init__(**attrs)
+        _plain_types(self)
+
+
+_TYPE_WORDS = {Path: "PATH", int: "INTEGER", float: "NUMBER", str: "TEXT"}
+
+
+def _plain_types(cmd: Any) -> None:
+    """Show the types of ``cmd``'s parameters (its --help option's too, made on demand),
+    and of its subcommands', as ``_type_word`` says."""
+    for param in cmd.params:
+        param.display_type_rich = lambda ctx, p=param: _type_word(p)
+    make_help = cmd.get_help_option
+
+    def help_option(ctx: Any) -> Any:
+        opt = make_help(ctx)
+        if opt is not None:
+            opt.display_type_rich = lambda ctx: None
+        return opt
+
+    cmd.get_help_option = help_option
+    for sub in getattr(cmd, "commands", {}).values():
+        _plain_types(sub)
+
+
+def _type_word(param: Any) -> str | None:
+    """Return how help shows ``param``'s type: an option's metavar, a word, or nothing for
+    a flag."""
+    if getattr(param, "is_flag", False):
+        return None
+    if getattr(param, "metavar", None) and not isinstance(param, typer.core.TyperArgument):
+        return str(param.metavar)
+    d = param.type_descriptor
+    ann = get_args(d.annotation)[0] if d.is_list else d.annotation
+    word = _TYPE_WORDS.get(ann, getattr(ann, "__name__", str(ann)).upper())
+    if not d.is_list:
+        return word
+    return f"{word}..." if isinstance(param, typer.core.TyperArgument) else f"{word} (repeatable)"
+
 
 app = typer.Typer(
+    cls=Group,
     add_completion=False,
     no_args_is_help=True,
     rich_markup_mode="markdown",
-    help="gtgen: pseudo ground truth for BEV elevation and traversability learning (RoadRunner M&M).",
+    help="""gtgen: pseudo ground truth for BEV elevation and traversability learning (RoadRunner M&M).
+
+**Examples** (in one folder: the workspace gtgen_ws/)
+
+```
+gtgen extract bag.mcap
+gtgen fuse --window 60
+gtgen dem-align --dem usgs_1m/
+gtgen report
+gtgen train
+```
+""",
     pretty_exceptions_enable=False,
 )
 
 WORKSPACE = Path("gtgen_ws")
-ConfigOpt = typer.Option(None, "--config", "-c", help="partial YAML over the defaults in configs/")
+MAX_WORKERS = 256  # more processes than any machine gtgen runs on has cores: a typo, not a request
+ConfigOpt = typer.Option(None, "--config", "-c", metavar="FILE", help="partial YAML over the defaults in configs/")
 OverwriteOpt = typer.Option(False, "--overwrite", help="replace an existing output even if gtgen did not write it")
+
+
+def setting(key: str) -> Callable[[Any], Any]:
+    """Return an option callback that holds a value to the bounds of config key ``key``
+    ('fuse.window_s'), so that ``--window inf`` is a usage error naming the option."""
+
+    def check(value: Any) -> Any:
+        if value is None:
+            return None
+        from gtgen.config import check_value
+
+        try:
+            return check_value(key, value)
+        except ConfigError as err:
+            raise typer.BadParameter(str(err)) from None
+
+    return check
 
 
 def console():
@@ -48,23 +127,29 @@ def load(config: Optional[Path], *overrides: dict[str, Any]):
     return load_config(config, *overrides)
 
 
-def read_yaml(path: Path) -> dict:
-    """Return the mapping of a ``--config`` file."""
+def read_yaml(path: Path, what: str = "config file") -> dict:
+    """Return the mapping of a YAML file (a ``--config`` file, a manifest: ``what``)."""
     from gtgen.config import read_yaml as read
 
-    return read(path)
+    return read(path, what)
 
 
 def table(title: str, rows: list[tuple[str, Any]]) -> None:
-    """Print a two-column summary table."""
+    """Print a two-column summary table (a missing value shows as n/a)."""
     from rich.table import Table
 
     t = Table(title=title, show_header=False)
     t.add_column("", style="bold")
     t.add_column("")
     for k, v in rows:
-        t.add_row(str(k), str(v))
+        t.add_row(str(k), na(v))
     console().print(t)
+
+
+def na(v: Any, unit: str = "") -> str:
+    """Return ``v`` and its ``unit`` for a table cell, or 'n/a' for a value that does not
+    exist (None: a region without cells, a rate without samples)."""
+    return "n/a" if v is None else f"{v}{unit}"
 
 
 def fmt(v: Any, pct: bool = False) -> str:
@@ -101,11 +186,32 @@ def _fail(message: str) -> None:
 
 
 def main() -> None:
-    """Run the CLI: usage errors print the usage and exit 2 (click's standalone mode);
-    gtgen errors and OS errors (a full disk, a permission) print one line and exit 1."""
+    """Run the CLI: a usage error (a bad option value, a missing argument) prints the usage
+    and the error on one line and exits 2; gtgen errors and OS errors (a full disk, a
+    permission) print one line and exit 1."""
     try:
-        app(prog_name="gtgen")
+        code = app(prog_name="gtgen", standalone_mode=False)
+    except typer.TyperException as err:  # click's usage errors
+        _usage_error(err)
+    except typer.Abort:
+        typer.echo("error: aborted", err=True)
+        sys.exit(1)
     except GtgenError as err:
         _fail(str(err))
     except OSError as err:
         _fail(f"{err.strerror or err}" + (f": '{err.filename}'" if err.filename else ""))
+    except MemoryError:
+        _fail("out of memory; lower the sizes in the config (grids, images, shards.max_voxel_points, train.batch_size)")
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+def _usage_error(err: Any) -> None:
+    """Print a usage error as the usage line and one line of error, and exit with its code
+    (2). The usage that no arguments ask for has been printed as the help already."""
+    ctx = getattr(err, "ctx", None)
+    if type(err).__name__ != "NoArgsIsHelpError":
+        if ctx is not None:
+            typer.echo(ctx.get_usage(), err=True)
+        hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+        typer.echo(f"error: {' '.join(err.format_message().split())}{hint}", err=True)
+    sys.exit(err.exit_code)

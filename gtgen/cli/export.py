@@ -9,8 +9,15 @@ import typer
 
 from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, table
 
-export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown",
-                     help="Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.")
+export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown", help="""Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.
+
+**Examples**
+
+```
+gtgen export geotiff -o qgis/
+gtgen export mcap -o labels.mcap
+```
+""")
 app.add_typer(export, name="export")
 
 
@@ -18,26 +25,33 @@ def _samples(text: Optional[str]) -> Optional[list[int]]:
     if text is None:
         return None
     try:
-        return [int(s) for s in text.split(",") if s.strip()]
+        out = [int(s) for s in text.split(",") if s.strip()]
     except ValueError:
-        raise typer.BadParameter(f"'{text}' is not a comma-separated list of sample indices, e.g. 3,7") from None
+        raise typer.BadParameter(f"'{text}' is not a comma-separated list of sample indices, e.g. 3,7", param_hint="'--samples'") from None
+    if not out or min(out) < 0:
+        raise typer.BadParameter(f"'{text}' lists no sample or a negative one; expected indices >= 0, e.g. 3,7", param_hint="'--samples'")
+    return out
 
 
 @export.command()
 def geotiff(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
     out: Path = typer.Option(Path("export/geotiff"), "-o", "--out", help="folder to write"),
-    samples: Optional[str] = typer.Option(None, "--samples", help="instead of mosaics, one raster set per listed sample, e.g. 3,7"),
+    samples: Optional[str] = typer.Option(None, "--samples", metavar="I,J,...", help="instead of mosaics, one raster set per listed sample, e.g. 3,7"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
     """Write north-up Cloud-Optimized GeoTIFFs in the dataset's CRS: per drive and range the
     mosaics of the labels (elevation in the DEM's datum, risk, region, count, last
     observation time) and of the aligned DEM.
 
+    Reads only the dataset (its CRS and grids as recorded): no --config.
+
     **Examples**
 
-        gtgen export geotiff -o qgis/
-        gtgen export geotiff --samples 3,7 -o qgis/samples
+    ```
+    gtgen export geotiff -o qgis/
+    gtgen export geotiff --samples 3,7 -o qgis/samples
+    ```
     """
     from gtgen.export import export_geotiff
 
@@ -48,7 +62,7 @@ def geotiff(
 
 @export.command()
 def mcap(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align' or 'gtgen build'"),
     out: Path = typer.Option(Path("export/dataset.mcap"), "-o", "--out", help=".mcap file to write"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
@@ -56,9 +70,14 @@ def mcap(
     (GridMap and foxglove Grid), TF, the four images and the voxel points, at the sample
     times.
 
+    Reads only the dataset: no --config.
+
     **Examples**
 
-        gtgen export mcap -o labels.mcap
+    ```
+    gtgen export mcap -o labels.mcap
+    gtgen export mcap datasets/paso.zarr -o paso.mcap
+    ```
     """
     from gtgen.export import export_mcap
 

@@ -13,9 +13,9 @@ from gtgen.errors import GtgenError
 
 @app.command("train")
 def train_cmd(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
-    preset: str = typer.Option("tiny", help="tiny (CPU, minutes) | paper (paper sizes, GPU)"),
-    run: Optional[Path] = typer.Option(None, "--run", help="run folder [default: runs/<preset>, or runs/<preset>-seed<k> with --seeds]"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
+    preset: str = typer.Option("tiny", metavar="tiny|paper", help="tiny (CPU, minutes) or paper (paper sizes, GPU)"),
+    run: Optional[Path] = typer.Option(None, "--run", help="run folder [default: runs/PRESET, or runs/PRESET-seedK with --seeds]"),
     resume: bool = typer.Option(False, help="continue from the run folder's checkpoint"),
     steps: Optional[int] = typer.Option(None, help="stop after this many more steps (the schedule keeps the preset's total)"),
     seeds: int = typer.Option(1, min=1, help="train this many seeds (train.seed, +1, ...), one run folder each"),
@@ -25,10 +25,12 @@ def train_cmd(
 
     **Examples**
 
-        gtgen train                                # tiny preset on ./gtgen_ws/dataset.zarr -> runs/tiny/
-        gtgen train --seeds 3                      # runs/tiny-seed0, -seed1, -seed2 (then: gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt')
-        gtgen train --preset paper --config gpu.yaml
-        gtgen train --resume --run runs/tiny
+    ```
+    gtgen train                         # tiny preset -> runs/tiny/
+    gtgen train --seeds 3               # runs/tiny-seed0 .. runs/tiny-seed2
+    gtgen train --preset paper --config gpu.yaml
+    gtgen train --resume --run runs/tiny
+    ```
     """
     from gtgen.config import load_config
     from gtgen.train.trainer import preset_overrides, train
@@ -77,20 +79,24 @@ def _cell(res: dict, path: tuple[str, ...], coverage: bool = False) -> str:
 
 @app.command("eval")
 def eval_cmd(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset to evaluate on"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset to evaluate on"),
     ckpt: list[Path] = typer.Option([Path("runs/latest/ckpt.pt")], "--ckpt", help="checkpoint from 'gtgen train'; repeat it, or quote a glob, for several seeds (mean ± spread)"),
-    preset: Optional[str] = typer.Option(None, help="refuse a checkpoint of another preset"),
-    split: str = typer.Option("val", help="val | train | all"),
-    viz: Optional[int] = typer.Option(None, "--viz", help="also draw this sample with the predictions (of the first checkpoint)"),
+    preset: Optional[str] = typer.Option(None, metavar="tiny|paper", help="refuse a checkpoint of another preset"),
+    split: str = typer.Option("val", metavar="val|train|all", help="the split to evaluate"),
+    viz: Optional[int] = typer.Option(None, "--viz", metavar="SAMPLE", help="also draw this sample with the predictions (of the first checkpoint)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the (first) checkpoint]"),
 ) -> None:
     """Paper-style tables: elevation MAE per region, risk MSE/P/R/F1, consistency; baselines.
 
+    The model and thresholds are those the checkpoint recorded: no --config.
+
     **Examples**
 
-        gtgen eval --ckpt runs/latest/ckpt.pt
-        gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'            # mean ± spread over the seeds
-        gtgen eval datasets/test.zarr --ckpt runs/paper/ckpt.pt --split all --viz 3
+    ```
+    gtgen eval --ckpt runs/latest/ckpt.pt
+    gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'   # mean ± spread of seeds
+    gtgen eval data/test.zarr --ckpt runs/paper/ckpt.pt --split all --viz 3
+    ```
     """
 
     from rich.table import Table

@@ -7,16 +7,17 @@ from typing import Any, Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, ConfigOpt, OverwriteOpt, app, console, load, table
-from gtgen.errors import GtgenError
+from gtgen.cli.app import MAX_WORKERS, WORKSPACE, ConfigOpt, OverwriteOpt, app, console, load, setting, table
 
 
 @app.command()
 def synth(
-    out: Path = typer.Argument(..., help="output folder (created; must be empty or absent)"),
-    seed: Optional[int] = typer.Option(None, help="random seed [default from config: 0]"),
-    duration: Optional[float] = typer.Option(None, help="drive duration [s] [default from config: 60]"),
-    format: Optional[str] = typer.Option(None, "--format", help="mcap | bag | both [default from config: both]"),
+    out: Path = typer.Argument(..., metavar="OUT", help="output folder (created; must be empty or absent)"),
+    seed: Optional[int] = typer.Option(None, callback=setting("synth.seed"), help="random seed, >= 0 [default from config: 0]"),
+    duration: Optional[float] = typer.Option(None, metavar="SECONDS", callback=setting("synth.duration_s"),
+                                             help="drive duration, at most 3600 [default from config: 60]"),
+    format: Optional[str] = typer.Option(None, "--format", metavar="mcap|bag|both", callback=setting("synth.formats"),
+                                         help="bag flavours to write [default from config: both]"),
     overwrite: bool = typer.Option(False, help="replace a non-empty OUT"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
@@ -24,20 +25,13 @@ def synth(
 
     **Examples**
 
-        gtgen synth drive                      # 60 s drive, ROS 2 MCAP and ROS 1 bag
-        gtgen synth drive --seed 3 --duration 120 --format mcap
+    ```
+    gtgen synth drive                   # 60 s drive, ROS 2 MCAP + ROS 1 bag
+    gtgen synth drive --seed 3 --duration 120 --format mcap
+    ```
     """
-    over: dict[str, Any] = {}
-    if seed is not None:
-        over["seed"] = seed
-    if duration is not None:
-        if duration <= 0:
-            raise GtgenError(f"--duration {duration} must be a positive number of seconds")
-        over["duration_s"] = duration
-    if format is not None:
-        if format not in ("mcap", "bag", "both"):
-            raise GtgenError(f"--format {format!r} unknown; expected one of ['mcap', 'bag', 'both']")
-        over["formats"] = format
+    given = {"seed": seed, "duration_s": duration, "formats": format}
+    over: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
     cfg = load(config, {"synth": over})
     from gtgen.synth import run_synth
 
@@ -55,19 +49,25 @@ def synth(
 
 @app.command()
 def extract(
-    bags: list[Path] = typer.Argument(..., help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
+    bags: list[Path] = typer.Argument(..., metavar="BAG...", help="bag files (.bag, .mcap, .db3) or rosbag2 folders of ONE drive"),
     out: Path = typer.Option(WORKSPACE / "drive.zarr", "-o", "--out", help="drive store to write"),
-    workers: int = typer.Option(2, min=1, help="processes reading the bags (record-time slices)"),
+    workers: int = typer.Option(2, min=1, max=MAX_WORKERS, help="processes reading the bags (record-time slices)"),
     overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Read a drive's bags into a per-drive store: poses, GNSS, maps, images, voxel maps.
 
+    Messages that do not decode are counted per topic (decode failures), messages recorded
+    twice are dropped (dropped: duplicate); only a topic left with no usable message stops
+    the run.
+
     **Examples**
 
-        gtgen extract bag.mcap                         # -> ./gtgen_ws/drive.zarr
-        gtgen extract run_0.bag run_1.bag -o runs/a.zarr
-        gtgen extract rosbag2_folder --config my_robot.yaml
+    ```
+    gtgen extract bag.mcap              # -> ./gtgen_ws/drive.zarr
+    gtgen extract run_0.bag run_1.bag -o runs/a.zarr
+    gtgen extract rosbag2_folder --config my_robot.yaml
+    ```
     """
     cfg = load(config)
     from gtgen.extract import run_extract
@@ -76,7 +76,8 @@ def extract(
     from rich.table import Table
 
     t = Table(title="gtgen extract: topics")
-    for col in ("topic", "role", "count", "rate Hz", "max gap s", "decode failures", "dropped", "record-header max s"):
+    t.add_column("topic", overflow="fold")  # a topic name cut short with an ellipsis is no name
+    for col in ("role", "count", "rate Hz", "max gap s", "decode failures", "dropped", "record-header max s"):
         t.add_column(col)
     for s in res.topics:
         t.add_row(s["topic"], s["role"], str(s["count"]), str(s["rate_hz"]), str(s["max_gap_s"]),
@@ -100,11 +101,13 @@ def extract(
 
 @app.command()
 def fuse(
-    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
-    window: Optional[float] = typer.Option(None, "--window", help="future window [s] [default from config: 60]"),
-    past: Optional[float] = typer.Option(None, "--past", help="past window [s] [default from config: 0]"),
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", metavar="DRIVE", help="drive store from 'gtgen extract'"),
+    window: Optional[float] = typer.Option(None, "--window", metavar="SECONDS", callback=setting("fuse.window_s"),
+                                           help="future window, > 0 and at most a day [default from config: 60]"),
+    past: Optional[float] = typer.Option(None, "--past", metavar="SECONDS", callback=setting("fuse.past_s"),
+                                         help="past window, >= 0 and at most a day [default from config: 0]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="fused store [default: fused.zarr beside DRIVE]"),
-    workers: int = typer.Option(2, min=1, help="processes (jobs split by range and by fuse.chunk_samples samples)"),
+    workers: int = typer.Option(2, min=1, max=MAX_WORKERS, help="processes (jobs split by range and by fuse.chunk_samples samples)"),
     overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
@@ -112,18 +115,13 @@ def fuse(
 
     **Examples**
 
-        gtgen fuse --window 60                 # ./gtgen_ws/drive.zarr -> ./gtgen_ws/fused.zarr
-        gtgen fuse runs/a.zarr --window 30 --past 5
+    ```
+    gtgen fuse --window 60              # gtgen_ws/drive.zarr -> fused.zarr
+    gtgen fuse runs/a.zarr --window 30 --past 5
+    ```
     """
-    over: dict[str, Any] = {}
-    if window is not None:
-        if window <= 0:
-            raise GtgenError(f"--window {window} must be a positive number of seconds")
-        over["window_s"] = window
-    if past is not None:
-        if past < 0:
-            raise GtgenError(f"--past {past} must be zero or a positive number of seconds")
-        over["past_s"] = past
+    given = {"window_s": window, "past_s": past}
+    over: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
     cfg = load(config, {"fuse": over})
     from gtgen.fuse.run import run_fuse
 
@@ -137,7 +135,7 @@ def fuse(
 
 @app.command("dem-align")
 def dem_align(
-    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", help="drive store from 'gtgen extract'"),
+    drive: Path = typer.Argument(WORKSPACE / "drive.zarr", metavar="DRIVE", help="drive store from 'gtgen extract'"),
     fused: Optional[Path] = typer.Option(None, "--fused", help="fused store [default: fused.zarr beside DRIVE]"),
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
@@ -148,8 +146,10 @@ def dem_align(
 
     **Examples**
 
-        gtgen dem-align                        # ./gtgen_ws/{drive,fused}.zarr -> ./gtgen_ws/dataset.zarr
-        gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
+    ```
+    gtgen dem-align                     # gtgen_ws/ -> gtgen_ws/dataset.zarr
+    gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
+    ```
     """
     cfg = load(config)
     from gtgen.dataset.dem_align import run_dem_align
@@ -179,20 +179,24 @@ def dem_align(
 
 @app.command()
 def build(
-    sources: list[Path] = typer.Argument(..., help="manifest YAML, drive folders, a folder of drive folders, or bags"),
+    sources: list[Path] = typer.Argument(..., metavar="SOURCE...", help="manifest YAML, drive folders, a folder of drive folders, or bags"),
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside each drive's bags]"),
     out: Path = typer.Option(Path("gtgen_build"), "-o", "--out", help="output folder (dataset.zarr + drives/)"),
-    workers: int = typer.Option(2, help="local worker processes"),
+    workers: int = typer.Option(2, min=1, max=MAX_WORKERS, help="local worker processes"),
     scheduler: Optional[str] = typer.Option(None, help="dask.distributed scheduler address (e.g. tcp://host:8786)"),
     overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Build one dataset from many drives (extract -> fuse -> dem-align each), resumable.
 
+    A manifest maps drive names to their bags: `drives: {name: [bag, ...]}`.
+
     **Examples**
 
-        gtgen build drives/ --dem usgs_1m/ -o paso_dataset --workers 2
-        gtgen build manifest.yaml --scheduler tcp://10.0.0.5:8786
+    ```
+    gtgen build drives/ --dem usgs_1m/ -o paso_dataset --workers 2
+    gtgen build manifest.yaml --scheduler tcp://10.0.0.5:8786
+    ```
     """
     from pipelines.build_dataset import build_dataset, summary_rows
 

@@ -7,24 +7,27 @@ from typing import Any, Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, table
+from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, na, table
 
 
 @app.command()
 def report(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="folder for report.json and PNGs [default: report/ beside the dataset's workspace]"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="folder for report.json and PNGs [default: report/]"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
     """Print a dataset card (kept/rejected, coverage, ICP fitness) and write QA figures.
 
     With synth truth beside the bags, also the label error per region and range and the
-    DEM alignment error.
+    DEM alignment error. The thresholds are those the dataset was built with (its
+    recorded config), so the report takes no --config.
 
     **Examples**
 
-        gtgen report
-        gtgen report datasets/paso.zarr -o qa/
+    ```
+    gtgen report
+    gtgen report datasets/paso.zarr -o qa/
+    ```
     """
     from gtgen.report import build_report
 
@@ -48,40 +51,47 @@ def report(
         for r in ("micro", "short"):
             for reg in ("obs_pc", "obs_f", "unobs"):
                 e = t[r][reg]
-                rows.append((f"truth {r} {reg}", f"elev MAE {e['elevation_mae_m']} m, risk MSE {e['risk_mse']}, X-Racer MAE {e['xracer_elevation_mae_m']} m"))
+                rows.append((f"truth {r} {reg}", f"elev MAE {na(e['elevation_mae_m'], ' m')}, risk MSE {na(e['risk_mse'])}, "
+                                                  f"X-Racer MAE {na(e['xracer_elevation_mae_m'], ' m')}"))
             fv = t[r]["fused_vs_single_map"]
-            rows.append((f"truth {r} fused vs single map", f"{fv['fused_mae_m']} m vs {fv['single_map_mae_m']} m on {fv['cells']} cells"))
+            rows.append((f"truth {r} fused vs single map", f"{na(fv['fused_mae_m'], ' m')} vs {na(fv['single_map_mae_m'], ' m')} on {fv['cells']} cells"))
         d = t["dem_alignment"]
-        rows.append(("DEM alignment error", f"horizontal median {d['horizontal_at_vehicle_m'].get('median')} m (max {d['horizontal_at_vehicle_m'].get('max')}), "
-                                            f"at 50 m ahead median {d['horizontal_50m_ahead_m'].get('median')} m, vertical median {d['vertical_m'].get('median')} m (max {d['vertical_m'].get('max')})"))
+        hv, ha, vv = d["horizontal_at_vehicle_m"], d["horizontal_50m_ahead_m"], d["vertical_m"]
+        rows.append(("DEM alignment error", f"horizontal median {na(hv.get('median'), ' m')} (max {na(hv.get('max'), ' m')}), "
+                                            f"at 50 m ahead median {na(ha.get('median'), ' m')}, vertical median {na(vv.get('median'), ' m')} (max {na(vv.get('max'), ' m')})"))
     rj = t.get("rejections")
     if rj:
         c = rj["confusion"]
         rows.append(("truth: kept (good / bad)", f"{c['kept']['good']} / {c['kept']['bad']}"))
         rows.append(("truth: rejected (good / bad)", f"{c['rejected']['good']} / {c['rejected']['bad']}"))
-        rows.append(("truth: bad rejected, good kept", f"{rj['bad_rejected_pct']} %, {rj['good_kept_pct']} %"))
+        rows.append(("truth: bad rejected, good kept", f"{na(rj['bad_rejected_pct'], ' %')}, {na(rj['good_kept_pct'], ' %')}"))
         rows += [(f"truth: reasons of rejected {cls}", ", ".join(f"{k} {v}" for k, v in r.items()) or "none") for cls, r in rj["reasons"].items()]
         fe, ga = rj["fill_error_m"]["kept"], rj["gnss_fit_alone_error"]
         if fe:
-            rows.append(("truth: DEM fill error of kept", f"median {fe['median']} m, max {fe['max']} m"))
-        rows.append(("truth: GNSS fit alone", f"horizontal median {ga['horizontal_m'].get('median')} m, vertical {ga['vertical_m'].get('median')} m, "
-                                              f"yaw {ga['yaw_deg'].get('median')} deg"))
+            rows.append(("truth: DEM fill error of kept", f"median {na(fe['median'], ' m')}, max {na(fe['max'], ' m')}"))
+        rows.append(("truth: GNSS fit alone", f"horizontal median {na(ga['horizontal_m'].get('median'), ' m')}, vertical {na(ga['vertical_m'].get('median'), ' m')}, "
+                                              f"yaw {na(ga['yaw_deg'].get('median'), ' deg')}"))
     rows.append(("figures", ", ".join(str(p) for p in rep.figures)))
     table("gtgen report", rows)
 
 
 @app.command()
 def viz(
-    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
-    sample: int = typer.Option(0, "--sample", "-n", help="sample index"),
+    dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
+    sample: int = typer.Option(0, "--sample", "-n", min=0, help="sample index (0 is the first)"),
     out: Path = typer.Option(Path("sample.png"), "-o", "--out", help="PNG to write"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
     """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
 
+    Reads only the dataset (grids and resolutions as recorded in it): no --config.
+
     **Examples**
 
-        gtgen viz --sample 12 -o s12.png
+    ```
+    gtgen viz --sample 12 -o s12.png
+    gtgen viz datasets/paso.zarr -n 0 -o first.png
+    ```
     """
     from gtgen.viz import render_sample
 
@@ -91,15 +101,17 @@ def viz(
 
 @app.command()
 def verify(
-    store: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="a store gtgen wrote: drive, fused or dataset"),
+    store: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="STORE", help="a store gtgen wrote: drive, fused or dataset"),
 ) -> None:
     """Check a store whole: every chunk and shard file it was written with is there with its
     size, metadata unchanged, every chunk decodes (checksums). Exit code 1 if damaged.
 
     **Examples**
 
-        gtgen verify
-        gtgen verify gtgen_ws/drive.zarr
+    ```
+    gtgen verify                          # gtgen_ws/dataset.zarr
+    gtgen verify gtgen_ws/drive.zarr
+    ```
     """
     from gtgen.errors import GtgenError
     from gtgen.storage.stores import verify_store

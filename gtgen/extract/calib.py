@@ -12,12 +12,13 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.bag.decode.image import intrinsics
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, GtgenConfig
 from gtgen.errors import PoseError, TopicError
-from gtgen.extract.scan import Scan
+from gtgen.extract.scan import DUPLICATE, Scan
 from gtgen.geometry import matrix_to_quat, rescale_K
 
 NO_TRANSFORM = "no_transform"
@@ -37,9 +38,7 @@ def pose_track(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> tuple[PoseTrack, s
     """
     tp = cfg.topics
     tol = int(cfg.extract.pose_tolerance_s * 1e9)
-    if tp.odometry is not None:
-        if not scan.odom:
-            raise TopicError(f"role 'odometry': no usable message on '{tp.odometry}'")
+    if tp.odometry is not None:  # the scan made sure it has a usable message
         t = np.array([s[0] for s in scan.odom], np.int64)
         track, ooo, dups = PoseTrack.from_unsorted(t, np.array([s[1] for s in scan.odom]), np.array([s[2] for s in scan.odom]), tol)
         source = f"odometry on '{tp.odometry}'"
@@ -71,13 +70,15 @@ def _warnings(cfg: GtgenConfig, scan: Scan, track: PoseTrack, ooo: int, dups: in
     if ooo:
         warnings.append(f"odometry: {ooo} out-of-order stamps (sorted)")
     if dups:
-        warnings.append(f"odometry: {dups} duplicate stamps (dropped)")
+        warnings.append(f"odometry: {dups} messages share their stamp with an earlier one of other content (the first kept)")
     gaps = np.diff(track.t_ns) * 1e-9
     big = gaps > 2 * cfg.extract.pose_tolerance_s
     if big.any():
         warnings.append(f"poses: {int(big.sum())} gaps longer than {2 * cfg.extract.pose_tolerance_s:.2f} s "
                         f"(max {gaps.max():.2f} s); samples there are rejected")
     for s in scan.stats.values():
+        if s.dropped.get(DUPLICATE):
+            warnings.append(f"{s.topic}: {s.dropped[DUPLICATE]} duplicate messages (same stamp and bytes as an earlier one) dropped")
         if s.record_skew_max_s > cfg.extract.record_skew_warn_s:
             warnings.append(f"{s.topic}: header stamps differ from record times by up to {s.record_skew_max_s:.1f} s (header stamps are used)")
     return warnings
@@ -93,7 +94,7 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
         frames = [m[2] for m in meta]
         ok = _known(tf, tp.odom_frame, frames, t) | (t < 0)
         topic_of[role].drop(NO_TRANSFORM, int(sum(1 for m, k in zip(meta, ok) if m[1] and not k)))
-        scan.map_meta[role] = [(m[0], m[1] and bool(k), m[2]) for m, k in zip(meta, ok)]
+        scan.map_meta[role] = [(m[0], m[1] and bool(k), *m[2:]) for m, k in zip(meta, ok)]
     for role, frames, target in [("voxel_map", scan.voxel_frames, tp.odom_frame)] + \
             [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS]:
         t = np.asarray(scan.stamps[role], np.int64)
@@ -142,8 +143,7 @@ def extrinsics(cfg: GtgenConfig, scan: Scan, tf: TfBuffer, image_t: NDArray) -> 
         info = scan.info.get(c)
         if info is None:
             raise TopicError(f"role 'camera_info.{c}': no CameraInfo on '{cfg.topics.cameras[c].info}'")
-        Kraw = np.asarray(getattr(info, "k", None) if hasattr(info, "k") else info.K, dtype=np.float64).reshape(3, 3)
-        Ks.append(rescale_K(Kraw, (int(info.width), int(info.height)), (W, H)))
+        Ks.append(rescale_K(*intrinsics(info), (W, H)))
         frame = scan.frames.get(f"camera.{c}") or frame_id(info.header.frame_id)
         T, ok = tf.lookup(cfg.topics.base_frame, frame, image_t[:, c_i])
         if not ok.all():

@@ -16,10 +16,10 @@ from typing import Any
 from gtgen import __version__, codes
 from gtgen.bag.reader import BagSet, hash_bag
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
-from gtgen.errors import BagError, DecodeError
+from gtgen.errors import BagError
 from gtgen.extract import calib
 from gtgen.extract.roles import resolve_roles
-from gtgen.extract.scan import Frames, Scan, import_readers, prepass, scan_slice, slices
+from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
 from gtgen.runtime.output import stage_output
@@ -94,13 +94,8 @@ def _read(pool: Pool, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str]
     jobs = [(paths, cfg, roles, frames, a, b, None if stage is None else str(stage), k) for k, (a, b) in enumerate(bounds)]
     parts = list(pool.map(scan_slice, jobs, "extract: reading"))
     slices_ = Slices(bounds, [p.counts() for p in parts], [p.staged for p in parts] if stage is not None else [])
-    scan = parts[0]  # before merging, the counts above: the merge grows parts[0]
-    for part in parts[1:]:
-        scan.extend(part)
-    for r in RANGES:
-        if not any(m[1] for m in scan.map_meta.get(f"map.{r}", [])):
-            st = scan.stats[cfg.topics.map_topic(r)]
-            raise DecodeError(f"{st.topic}: none of its {st.count} GridMaps is usable: {st.first_error or 'no message'}")
+    scan = merged(parts)  # after the counts above: the merge grows parts[0]
+    scan.require_usable()
     return scan, slices_
 
 

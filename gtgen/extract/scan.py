@@ -4,27 +4,40 @@ Each slice reads the small topics (odometry, TF, GNSS, camera info) whole, notes
 header stamps of the large ones (maps, voxel map, images) and, given a stager, stages
 what the plan will likely keep. A slice spans at most ``SLICE_S`` of the bag, so memory
 stays flat in drive length; the merged scan does not depend on the split.
+
+Every message of every role is checked here, once, before the plan is made: one that
+does not decode (a GridMap whose data do not fit its layout, a JPEG that does not open, a
+PointCloud2 shorter than its points) is a decode failure of its topic, a GridMap of
+another size than the topic's first is dropped (``size_changed``), and one recorded twice
+(same topic, stamp and bytes) is dropped as ``duplicate``, within a slice as it is read
+and across slices when they are merged. So the plan only ever picks messages that decode,
+and only a role left with no usable message stops the run.
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
-from collections.abc import Callable, Iterable
+from collections import Counter, defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.bag.decode.gridmap import decode_gridmap
-from gtgen.bag.decode.tf import frame_id, quat_xyzw, transform_matrix
-from gtgen.bag.reader import BagSet, Message, stamp_ns
+from gtgen.bag.decode.gridmap import check_gridmap
+from gtgen.bag.decode.image import decode_image, intrinsics
+from gtgen.bag.decode.pointcloud import decode_pointcloud
+from gtgen.bag.decode.tf import frame_id, odometry_pose, quat_xyzw, transform_matrix
+from gtgen.bag.reader import BagSet, Record, stamp_ns
 from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
 from gtgen.config import GtgenConfig
+from gtgen.errors import DecodeError
 from gtgen.extract.roles import is_large
 from gtgen.extract.stage import Staged, Stager
 
 SLICE_S = 20.0  # longest record-time slice of a pass [s]: bounds the memory of one job
+DUPLICATE = "duplicate"  # dropped: the same topic, stamp and bytes as an earlier message
+SIZE_CHANGED = "size_changed"  # dropped: a GridMap of another size or resolution than the topic's first
 
 
 @dataclass
@@ -73,21 +86,67 @@ class TopicStats:
             self.drop(k, v)
 
 
+Key = tuple[int, int, int]  # (header stamp [ns], crc32c, length) of a message: equal keys, one message recorded twice
+UNUSABLE_MAP = (-1, False, "", None)  # the map_meta entry of a map the plan must not pick
+
+
+@dataclass
+class Used:
+    """The messages of one topic a pass used, as they are read: per message its ordinal,
+    key and record-minus-header time [s]; packed into arrays by ``pack`` (40 bytes a
+    message, so a long drive's record stays small)."""
+
+    rows: list[tuple[int, int, int, int]] = field(default_factory=list)  # ordinal, stamp, crc32c, length
+    skews: list[float] = field(default_factory=list)
+    packed: tuple[NDArray, NDArray] = field(default_factory=lambda: (np.zeros((0, 4), np.int64), np.zeros(0)))
+
+    def add(self, i: int, key: Key, skew: float) -> None:
+        self.rows.append((i, *key))
+        self.skews.append(skew)
+
+    def arrays(self) -> tuple[NDArray, NDArray]:
+        """Return (rows (n, 4): ordinal, stamp, crc32c, length; skews (n,)), packed."""
+        if self.rows:
+            self.packed = (np.concatenate([self.packed[0], np.asarray(self.rows, np.int64).reshape(-1, 4)]),
+                           np.concatenate([self.packed[1], np.asarray(self.skews, np.float64)]))
+            self.rows, self.skews = [], []
+        return self.packed
+
+    def extend(self, other: Used, shift: int) -> None:
+        """Append ``other`` (the next slice's), its ordinals shifted by ``shift``."""
+        rows, skews = other.arrays()
+        mine = self.arrays()
+        self.packed = (np.concatenate([mine[0], rows + np.array([shift, 0, 0, 0])]), np.concatenate([mine[1], skews]))
+
+    def repeats(self) -> NDArray[np.bool_]:
+        """Return where a row's key is that of an earlier row."""
+        rows = self.arrays()[0]
+        first = np.zeros(len(rows), bool)
+        first[np.unique(rows[:, 1:], axis=0, return_index=True)[1]] = True
+        return ~first
+
+
 @dataclass
 class Scan:
-    """What a pass saw: stats per topic, the small topics whole, stamps of the large ones."""
+    """What a pass saw: stats per topic, the small topics whole, stamps of the large ones.
+
+    Message ordinals count every message of a topic (decode failures and duplicates
+    included) in record-time order: the large roles' lists are indexed by them, and the
+    odometry and GNSS entries end with theirs.
+    """
 
     stats: dict[str, TopicStats]
-    odom: list[tuple[int, NDArray, NDArray]] = field(default_factory=list)
+    odom: list[tuple[int, NDArray, NDArray, int]] = field(default_factory=list)  # (stamp, position, quaternion, ordinal)
     tf: dict[Edge, EdgeSamples] = field(default_factory=lambda: defaultdict(EdgeSamples))  # dynamic edges
     static: dict[Edge, NDArray] = field(default_factory=dict)
-    gnss: list[tuple] = field(default_factory=list)
+    gnss: list[tuple] = field(default_factory=list)  # (stamp, lat, lon, alt, variances, status, ordinal)
     info: dict[str, object] = field(default_factory=dict)
     frames: dict[str, str] = field(default_factory=dict)
-    stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
-    voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it did not decode
-    map_meta: dict[str, list[tuple[int, bool, str]]] = field(default_factory=lambda: defaultdict(list))  # (stamp, usable, frame)
-    map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution)
+    stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))  # per image / voxel map, -1 where unusable
+    voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it is unusable
+    map_meta: dict[str, list[tuple[int, bool, str, tuple | None]]] = field(default_factory=lambda: defaultdict(list))  # (stamp, usable, frame, (shape, resolution))
+    map_shape: dict[str, tuple[tuple[int, int], float]] = field(default_factory=dict)  # role -> (shape, resolution), set by ``merged``
+    used: dict[str, Used] = field(default_factory=lambda: defaultdict(Used))  # per topic
     staged: Staged | None = None  # what this slice staged (not merged by ``extend``)
     warnings: list[str] = field(default_factory=list)
 
@@ -96,15 +155,18 @@ class Scan:
         return {s.role: s.count for s in self.stats.values()}
 
     def extend(self, other: Scan) -> None:
-        """Append the scan of the next slice."""
+        """Append the scan of the next slice (its ordinals shifted past this one's)."""
+        shift = {t: s.count for t, s in self.stats.items()}
+        odom_shift = next((shift[t] for t, s in self.stats.items() if s.role == "odometry"), 0)
+        gnss_shift = next((shift[t] for t, s in self.stats.items() if s.role == "gnss"), 0)
         for t, o in other.stats.items():
             self.stats[t].extend(o)
-        self.odom.extend(other.odom)
+        self.odom += [(*o[:-1], o[-1] + odom_shift) for o in other.odom]
         for e, samples in other.tf.items():
             self.tf[e].extend(samples)
         self.static.update(other.static)
         self.voxel_frames.extend(other.voxel_frames)
-        self.gnss.extend(other.gnss)
+        self.gnss += [(*g[:-1], g[-1] + gnss_shift) for g in other.gnss]
         for k, v in other.info.items():
             self.info.setdefault(k, v)
         for k, v in other.frames.items():
@@ -113,9 +175,105 @@ class Scan:
             self.stamps[k].extend(v)
         for k, v in other.map_meta.items():
             self.map_meta[k].extend(v)
-        for k, v in other.map_shape.items():
-            self.map_shape.setdefault(k, v)
+        for t, v in other.used.items():
+            self.used[t].extend(v, shift[t])
         self.warnings += [w for w in other.warnings if w not in self.warnings]
+
+    def drop_repeats(self) -> None:
+        """Drop the messages recorded twice that different slices read (a slice drops its
+        own as it reads them): each key's first message stays."""
+        for topic, used in self.used.items():
+            again = used.repeats()
+            if again.any():
+                self._retract(topic, again)
+
+    def _retract(self, topic: str, again: NDArray[np.bool_]) -> None:
+        """Take the messages of ``topic`` whose rows of ``used`` are ``again`` out of the
+        scan, as duplicates (from its stats too: stamps, record skew)."""
+        s = self.stats[topic]
+        rows, skews = self.used[topic].arrays()
+        ordinals = set(rows[again, 0].tolist())
+        s.drop(DUPLICATE, len(ordinals))
+        gone = Counter(rows[again, 1].tolist())
+        s.stamps = [t for t in s.stamps if not _take(gone, t)]
+        s.record_skew_max_s = float(skews[~again].max(initial=0.0))
+        self.used[topic].packed = (rows[~again], skews[~again])
+        if s.role == "odometry":
+            self.odom = [o for o in self.odom if o[-1] not in ordinals]
+        elif s.role == "gnss":
+            self.gnss = [g for g in self.gnss if g[-1] not in ordinals]
+        elif s.role.startswith("map."):
+            for o in ordinals:
+                self.map_meta[s.role][o] = UNUSABLE_MAP
+        elif s.role.startswith("camera.") or s.role == "voxel_map":
+            for o in ordinals:
+                self.stamps[s.role][o] = -1
+                if s.role == "voxel_map":
+                    self.voxel_frames[o] = ""
+        # tf, tf_static and camera info: a second copy adds nothing (TF drops repeated
+        # stamps of an edge, the first CameraInfo is used), so counting it is all
+
+    def settle_map_sizes(self) -> None:
+        """Fix each range's grid (shape, resolution) to that of its first usable map and
+        drop the usable maps of another one (``size_changed``): the store holds one grid."""
+        topic_of = {s.role: s for s in self.stats.values()}
+        for role, meta in self.map_meta.items():
+            ref = next((m[3] for m in meta if m[1]), None)
+            if ref is None:
+                continue
+            self.map_shape[role] = ref
+            other = [i for i, m in enumerate(meta) if m[1] and not _same_grid(m[3], ref)]
+            for i in other:
+                meta[i] = UNUSABLE_MAP
+            topic_of[role].drop(SIZE_CHANGED, len(other))
+
+    def require_usable(self) -> None:
+        """Raise DecodeError for the first role the drive needs that is left with no
+        usable message (GNSS and TF are judged where they are used)."""
+        for s in self.stats.values():
+            if s.role.startswith("map."):
+                usable = any(m[1] for m in self.map_meta.get(s.role, []))
+            elif is_large(s.role):
+                usable = any(t >= 0 for t in self.stamps.get(s.role, []))
+            elif s.role.startswith("camera_info."):
+                usable = s.role.split(".")[1] in self.info
+            elif s.role == "odometry":
+                usable = bool(self.odom)
+            else:
+                continue
+            if not usable:
+                raise DecodeError(f"{s.topic}: none of its {s.count} messages is usable ({_why_none(s)})")
+
+
+def _take(counts: Counter, t: int) -> bool:
+    """Count one of ``t`` off ``counts``; return whether there was one."""
+    if counts[t] > 0:
+        counts[t] -= 1
+        return True
+    return False
+
+
+def _same_grid(a: tuple[tuple[int, int], float], b: tuple[tuple[int, int], float]) -> bool:
+    return a[0] == b[0] and abs(a[1] - b[1]) <= 1e-9 * b[1]
+
+
+def _why_none(s: TopicStats) -> str:
+    why = [f"{s.decode_failures} decode failures"] if s.decode_failures else []
+    why += [f"{n} dropped: {k}" for k, n in s.dropped.items()]
+    if s.first_error:
+        why.append(f"first error: {s.first_error}")
+    return "; ".join(why) or "no message"
+
+
+def merged(parts: list[Scan]) -> Scan:
+    """Return the scan of the whole drive from its slices' scans, in order (the first one
+    grows), with the duplicates across slices dropped and each range's grid settled."""
+    scan = parts[0]
+    for part in parts[1:]:
+        scan.extend(part)
+    scan.drop_repeats()
+    scan.settle_map_sizes()
+    return scan
 
 
 def slices(bags: BagSet, workers: int, n: int | None = None) -> list[tuple[int | None, int | None]]:
@@ -182,10 +340,10 @@ def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frame
     dynamic TF edges that can connect the data's frames are kept (memory)."""
     with BagSet(paths) as bags:
         if store is None:
-            scan = scan_messages(bags.messages(list(roles), start, stop), cfg, roles)
+            scan = scan_messages(bags.records(list(roles), start, stop), cfg, roles)
         else:
             with Stager(store, k, cfg) as stager:
-                scan = scan_messages(bags.messages(list(roles), start, stop), cfg, roles, stager.add)
+                scan = scan_messages(bags.records(list(roles), start, stop), cfg, roles, stager)
             scan.staged = stager.result
         scan.warnings = list(bags.warnings)
     seen = frames.data | set(scan.frames.values()) | set(scan.voxel_frames) | {m[2] for v in scan.map_meta.values() for m in v}
@@ -193,6 +351,8 @@ def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frame
     scan.tf = defaultdict(EdgeSamples, {e: s for e, s in scan.tf.items() if e in keep})
     for s in scan.tf.values():
         s.pack()
+    for u in scan.used.values():
+        u.arrays()
     return scan
 
 
@@ -205,52 +365,100 @@ def any_confident(conf: NDArray) -> bool:
 
 
 class _Scanner:
-    """Takes each message of a pass into a Scan (``stage`` sees every large message)."""
+    """Takes each message of a pass into a Scan; the stager, if any, sees every usable
+    large message."""
 
-    def __init__(self, cfg: GtgenConfig, roles: dict[str, str], stage: Callable | None) -> None:
-        self.cfg, self.roles, self.stage = cfg, roles, stage
+    def __init__(self, cfg: GtgenConfig, roles: dict[str, str], stager: Stager | None) -> None:
+        self.cfg, self.roles, self.stager = cfg, roles, stager
         self.scan = Scan(stats={t: TopicStats(t, r) for t, r in roles.items()})
         tp = cfg.topics
         self.layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
+        self.seen: dict[str, dict[Key, bool]] = defaultdict(dict)  # topic -> {key: whether it decoded}
 
-    def take(self, topic: str, msgtype: str, t_rec: int, msg: object | None, err: str | None) -> None:
+    def take(self, topic: str, msgtype: str, t_rec: int, msg: object | None, err: str | None, digest: tuple[int, int]) -> None:
         s = self.scan.stats[topic]
         role = self.roles[topic]
         s.count += 1
+        i = s.count - 1
         if msg is None:
-            s.decode_failures += 1
-            s.first_error = s.first_error or err or ""
-            if role.startswith("map."):
-                self.scan.map_meta[role].append((-1, False, ""))
-            elif role.startswith("camera.") or role == "voxel_map":
-                self.scan.stamps[role].append(-1)
-                if role == "voxel_map":
-                    self.scan.voxel_frames.append("")
+            self._unusable(s, role, err or "")
             return
+        key = (self._stamp(role, msg), *digest)
+        if key in self.seen[topic]:  # recorded twice: a copy of a message that did not decode fails alike
+            self._unusable(s, role, None if self.seen[topic][key] else s.first_error)
+            return
+        try:
+            data = self._decoded(role, msg, msgtype)
+        except DecodeError as e:
+            self.seen[topic][key] = False
+            self._unusable(s, role, str(e))
+            return
+        self.seen[topic][key] = True
         if role in ("tf_static", "tf"):
+            self.scan.used[topic].add(i, key, 0.0)
             self._tf(role, msg)
             return
         hdr = _header(role, msg)
-        t = stamp_ns(hdr)
+        t = key[0]
+        skew = abs(t_rec - t) * 1e-9
+        self.scan.used[topic].add(i, key, skew)
         s.stamps.append(t)
-        s.record_skew_max_s = max(s.record_skew_max_s, abs(t_rec - t) * 1e-9)
+        s.record_skew_max_s = max(s.record_skew_max_s, skew)
         if role == "odometry":
-            p, q = msg.pose.pose.position, msg.pose.pose.orientation  # type: ignore[attr-defined]
-            self.scan.odom.append((t, np.array([p.x, p.y, p.z]), quat_xyzw(q)))
+            self.scan.odom.append((t, *data, i))
         elif role == "gnss":
-            self._gnss(t, msg)
+            self._gnss(t, msg, i)
         elif role.startswith("camera_info."):
             self.scan.info.setdefault(role.split(".")[1], msg)
-        elif role.startswith("camera.") or role == "voxel_map":
+        elif role.startswith("camera."):
             self.scan.stamps[role].append(t)
-            if role.startswith("camera."):
-                self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
-            else:
-                self.scan.voxel_frames.append(frame_id(hdr.frame_id))
-            if self.stage is not None:
-                self.stage(role, s.count - 1, t, msg, msgtype, True)
+            self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
+            if self.stager is not None:
+                self.stager.add_image(role, i, t, data)
+        elif role == "voxel_map":
+            frame = frame_id(hdr.frame_id)
+            self.scan.stamps[role].append(t)
+            self.scan.voxel_frames.append(frame)
+            if self.stager is not None:
+                self.stager.add_voxels(i, t, data, frame)
         elif role.startswith("map."):
-            self._map(role, s, t, msg, msgtype, frame_id(hdr.frame_id))
+            self._map(role, s, i, t, msg, frame_id(hdr.frame_id), data)
+
+    def _stamp(self, role: str, msg: object) -> int:
+        if role in ("tf_static", "tf"):
+            trs = msg.transforms  # type: ignore[attr-defined]
+            return stamp_ns(trs[0].header) if len(trs) else 0
+        return stamp_ns(_header(role, msg))
+
+    def _decoded(self, role: str, msg: object, msgtype: str) -> object:
+        """Return what a message decodes to (an image, points, a GridMap's grid, a pose,
+        intrinsics), so the plan never picks one that does not; raise DecodeError."""
+        if role.startswith("camera."):
+            return decode_image(msg, msgtype)
+        if role == "voxel_map":
+            return decode_pointcloud(msg)
+        if role.startswith("map."):
+            return check_gridmap(msg, self.layer_names)
+        if role == "odometry":
+            return odometry_pose(msg)
+        if role.startswith("camera_info."):
+            return intrinsics(msg)
+        return None
+
+    def _unusable(self, s: TopicStats, role: str, err: str | None) -> None:
+        """Count a message the plan must not pick: a decode failure (``err``, a duplicate
+        if None); keep the large roles' lists aligned with the ordinals."""
+        if err is None:
+            s.drop(DUPLICATE)
+        else:
+            s.decode_failures += 1
+            s.first_error = s.first_error or err
+        if role.startswith("map."):
+            self.scan.map_meta[role].append(UNUSABLE_MAP)
+        elif role.startswith("camera.") or role == "voxel_map":
+            self.scan.stamps[role].append(-1)
+            if role == "voxel_map":
+                self.scan.voxel_frames.append("")
 
     def _tf(self, role: str, msg: object) -> None:
         for tr in msg.transforms:  # type: ignore[attr-defined]
@@ -261,33 +469,26 @@ class _Scanner:
                 tt = tr.transform.translation
                 self.scan.tf[(parent, child)].add(stamp_ns(tr.header), (tt.x, tt.y, tt.z), quat_xyzw(tr.transform.rotation))
 
-    def _gnss(self, t: int, msg: object) -> None:
+    def _gnss(self, t: int, msg: object, i: int) -> None:
         cov = np.asarray(msg.position_covariance, dtype=np.float64)  # type: ignore[attr-defined]
         var = cov[[0, 4, 8]] if msg.position_covariance_type > 0 and cov.size == 9 else np.full(3, np.nan)  # type: ignore[attr-defined]
-        self.scan.gnss.append((t, msg.latitude, msg.longitude, msg.altitude, var, msg.status.status))  # type: ignore[attr-defined]
+        self.scan.gnss.append((t, msg.latitude, msg.longitude, msg.altitude, var, msg.status.status, i))  # type: ignore[attr-defined]
 
-    def _map(self, role: str, s: TopicStats, t: int, msg: object, msgtype: str, frame: str) -> None:
+    def _map(self, role: str, s: TopicStats, i: int, t: int, msg: object, frame: str, grid: tuple) -> None:
         names = list(msg.layers)  # type: ignore[attr-defined]
-        ok = all(n in names for n in self.layer_names)
+        conf = msg.data[names.index(self.cfg.topics.layers.confidence)].data  # type: ignore[attr-defined]
+        ok = any_confident(np.asarray(conf))
         if not ok:
-            s.decode_failures += 1
-            s.first_error = s.first_error or f"layers {names}; expected {self.layer_names} (topics.layers)"
-        else:
-            conf = msg.data[names.index(self.cfg.topics.layers.confidence)].data  # type: ignore[attr-defined]
-            ok = any_confident(np.asarray(conf))
-            if not ok:
-                s.first_error = s.first_error or "all-NaN or zero-confidence map"
-            elif role not in self.scan.map_shape:
-                g = decode_gridmap(msg, self.layer_names)
-                self.scan.map_shape[role] = (g.shape, g.resolution_m)
-        self.scan.map_meta[role].append((t, ok, frame))
-        if self.stage is not None:
-            self.stage(role, s.count - 1, t, msg, msgtype, ok)
+            s.first_error = s.first_error or "all-NaN or zero-confidence map"
+        self.scan.map_meta[role].append((t, ok, frame, grid))
+        if self.stager is not None:
+            self.stager.add_map(role, i, t, msg, ok)
 
 
-def scan_messages(messages: Iterable[Message], cfg: GtgenConfig, roles: dict[str, str], stage: Callable | None = None) -> Scan:
-    """Return the Scan of ``messages``; ``stage`` sees every large message."""
-    scanner = _Scanner(cfg, roles, stage)
-    for m in messages:
-        scanner.take(*m)
+def scan_messages(records: Iterable[Record], cfg: GtgenConfig, roles: dict[str, str], stager: Stager | None = None) -> Scan:
+    """Return the Scan of ``records`` (messages with their digests); ``stager`` sees every
+    usable large message."""
+    scanner = _Scanner(cfg, roles, stager)
+    for r in records:
+        scanner.take(*r)
     return scanner.scan

@@ -21,11 +21,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import decode_gridmap
-from gtgen.bag.decode.image import decode_image, resize_image
-from gtgen.bag.decode.pointcloud import decode_pointcloud
-from gtgen.bag.decode.tf import frame_id
+from gtgen.bag.decode.image import resize_image
 from gtgen.config import RANGES, GtgenConfig
-from gtgen.errors import DecodeError
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
 from gtgen.storage.chunks import encode_chunk, make_parent
@@ -92,40 +89,18 @@ class Stager:
         make_parent(file, self.made)
         self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
 
-    def add(self, role: str, i: int, t: int, msg: object, msgtype: str, ok: bool) -> None:
-        """Take message ``i`` (slice ordinal) of a large role, stamped ``t``; ``ok`` is
-        False for a map the plan cannot use."""
-        if role.startswith("camera."):
-            self._stage_image(role, i, msg, msgtype)
-            if role == "camera.front":
-                for r in RANGES:
-                    self.pending[f"map.{r}"].append(t)
-                    self._resolve(f"map.{r}")
-        elif role == "voxel_map":
-            self._stage_voxel(i, t, msg)
-        elif ok:
-            b = t // self.period
-            if t < self.bin_first[role].get(b, t + 1):
-                self.bin_first[role][b] = t
-                self._stage_map(role, (t, i, msg))
-            self.held[role].append((t, i, msg))
-            self._resolve(role)
-
-    def _stage_image(self, role: str, i: int, msg: object, msgtype: str) -> None:
+    def add_image(self, role: str, i: int, t: int, img: NDArray[np.uint8]) -> None:
+        """Stage image ``i`` (slice ordinal) of camera ``role`` stamped ``t``, decoded to RGB."""
         W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
-        try:
-            img = resize_image(decode_image(msg, msgtype), W, H)
-        except DecodeError:
-            return  # staged nothing: if the plan wants it, the targeted pass reports the error
-        self._write(self.result.chunk(role, i), img)
+        self._write(self.result.chunk(role, i), resize_image(img, W, H))
         self.result.ordinals[role].add(i)
+        if role == "camera.front":  # a sample time is always a front frame
+            for r in RANGES:
+                self.pending[f"map.{r}"].append(t)
+                self._resolve(f"map.{r}")
 
-    def _stage_voxel(self, i: int, t: int, msg: object) -> None:
-        frame = frame_id(msg.header.frame_id)  # type: ignore[attr-defined]
-        try:
-            pts = decode_pointcloud(msg)
-        except DecodeError:
-            return
+    def add_voxels(self, i: int, t: int, pts: NDArray[np.float32], frame: str) -> None:
+        """Stage voxel map ``i`` (slice ordinal) stamped ``t``: its points in ``frame``."""
         if frame not in ("", self.cfg.topics.odom_frame):  # to odom once the whole TF buffer is known
             f = self.result.raw_voxels(i)
             make_parent(f, self.made)
@@ -135,6 +110,18 @@ class Stager:
         pts = thinned_points(pts, self.cfg.shards.max_voxel_points, self.cfg.shards.far_voxel_m)
         self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
         self.result.voxels[i] = (len(pts), t, frame)
+
+    def add_map(self, role: str, i: int, t: int, msg: object, ok: bool) -> None:
+        """Take GridMap ``i`` (slice ordinal) of ``role`` stamped ``t``; ``ok`` is False for
+        a map the plan cannot use."""
+        if not ok:
+            return
+        b = t // self.period
+        if t < self.bin_first[role].get(b, t + 1):
+            self.bin_first[role][b] = t
+            self._stage_map(role, (t, i, msg))
+        self.held[role].append((t, i, msg))
+        self._resolve(role)
 
     def _resolve(self, role: str) -> None:
         """Stage, for each front frame older than the newest map, the latest map stamped at
@@ -160,10 +147,7 @@ class Stager:
         _, i, msg = h
         if i in self.result.ordinals[role]:
             return
-        try:
-            g = decode_gridmap(msg, self.layer_names)
-        except DecodeError:
-            return
+        g = decode_gridmap(msg, self.layer_names)  # it decodes: the scan checked it
         if g.shape != self.result.map_shape.setdefault(role, g.shape):
             return  # a size change: the targeted pass reports it if the plan wants this map
         for name, layer in zip(MAP_LAYERS, self.layer_names):

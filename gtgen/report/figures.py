@@ -26,17 +26,21 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
         keys = list(cov[r])
         ax[0].bar(np.arange(len(keys)) + 0.4 * i, [100 * cov[r][k] for k in keys], width=0.4, label=r)
         ax[0].set_xticks(np.arange(len(keys)) + 0.2, keys)
-    ax[0].set_ylabel("% of cells")
+    ax[0].set_xlabel("region")
+    ax[0].set_ylabel("cells [% of the grid]")
     ax[0].set_title("label coverage per region")
-    ax[0].legend()
+    ax[0].legend(title="range")
     allfit = np.concatenate([fit, rfit[np.isfinite(rfit)]])
     ax[1].hist(allfit, bins=30, range=(0, 1), color="tab:blue")
     ax[1].set_title("ICP fitness (all aligned samples)")
-    ax[1].set_xlabel("fitness")
+    ax[1].set_xlabel("ICP fitness [0..1]")
+    ax[1].set_ylabel("samples")
     names = [codes.reason_name(c) for c in np.unique(rej_reason)]
     vals = [int((rej_reason == c).sum()) for c in np.unique(rej_reason)]
     ax[2].bar(["kept"] + names, [rep.card["samples_kept"]] + vals, color=["tab:green"] + ["tab:red"] * len(vals))
     ax[2].set_title("samples kept / rejected by reason")
+    ax[2].set_xlabel("kept, or rejection reason")
+    ax[2].set_ylabel("samples")
     ax[2].tick_params(axis="x", rotation=30)
     fig.tight_layout()
     paths.append(save_figure(fig, out_dir / "qa_overview.png", overwrite))
@@ -50,8 +54,13 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
             ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="kept by odometry, no ICP")
             ax.legend(fontsize=8)
         ax.set_aspect("equal")
-        ax.set_title("sample positions (DEM CRS), colour = ICP fitness")
-        fig.colorbar(sc)
+        ax.ticklabel_format(useOffset=False, style="plain")  # whole easting / northing, not an offset
+        ax.tick_params(axis="x", rotation=30)
+        ax.set_xlabel("easting [m] (DEM CRS)")
+        ax.set_ylabel("northing [m] (DEM CRS)")
+        ax.set_title("sample positions, colour = ICP fitness")
+        fig.colorbar(sc, ax=ax, shrink=0.8, label="ICP fitness [0..1]")
+        fig.tight_layout()
         paths.append(save_figure(fig, out_dir / "qa_track.png", overwrite))
         plt.close(fig)
     if rep.truth.get("micro"):
@@ -60,20 +69,21 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
             vals = [rep.truth[r][reg]["elevation_mae_m"] or 0 for reg in REGIONS.values()]
             ax.bar(np.arange(3) + 0.4 * i, vals, width=0.4, label=r)
         ax.set_xticks(np.arange(3) + 0.2, list(REGIONS.values()))
+        ax.set_xlabel("region")
         ax.set_ylabel("elevation MAE vs truth [m]")
         ax.set_title("label error against synth truth")
-        ax.legend()
+        ax.legend(title="range")
         paths.append(save_figure(fig, out_dir / "qa_label_error.png", overwrite))
         plt.close(fig)
     return paths
 
 
 SIGNALS = (  # (signal recorded per kept and per rejected sample, label, threshold key in dem config, above is bad)
-    ("icp_fitness", "ICP fitness", "min_fitness", False),
+    ("icp_fitness", "ICP fitness [0..1]", "min_fitness", False),
     ("icp_rmse_m", "ICP inlier RMSE [m]", "max_rmse_m", True),
-    ("dem_disagreement", "share of ground disagreeing with the DEM", "max_disagreement", True),
+    ("dem_disagreement", "share of ground disagreeing with the DEM [0..1]", "max_disagreement", True),
     ("gnss_offset_m", "GNSS offset of the placed track [m]", "max_gnss_offset_m", True),
-    ("vegetation_share", "share of observed cells left out as vegetation", None, True),
+    ("vegetation_share", "share of observed cells left out as vegetation [0..1]", None, True),
 )
 
 
@@ -93,11 +103,14 @@ def signal_figure(ds: DatasetStore, dem_cfg, out_dir: Path, overwrite: bool = Fa
     for ax, (kept, rej, label, key) in zip(axes.ravel(), panels):
         kept, rej = kept[np.isfinite(kept)], rej[np.isfinite(rej)]
         both = np.concatenate([kept, rej])
-        bins = np.linspace(both.min(), both.max() + 1e-9, 30) if len(both) else 10
+        lo, hi = (both.min(), both.max()) if len(both) else (0.0, 1.0)
+        bins = np.linspace(lo, hi if hi > lo else lo + 1.0, 30)  # one value alone: a unit-wide axis, not a 1e-9 one
         ax.hist([kept, rej], bins=bins, stacked=True, color=["tab:green", "tab:red"], label=["kept", "rejected"])
         if key is not None:
             ax.axvline(getattr(dem_cfg, key), color="k", ls="--", lw=1, label=f"dem.{key}")
         ax.set_title(label, fontsize=9)
+        ax.set_xlabel(label, fontsize=8)
+        ax.set_ylabel("samples", fontsize=8)
         ax.legend(fontsize=7)
     fig.suptitle("rejection signals of every sample ICP ran on")
     fig.tight_layout()

@@ -1,4 +1,5 @@
-"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them."""
+"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them; read
+the intrinsics of a sensor_msgs/CameraInfo."""
 
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ def decode_image(msg: object, msgtype: str) -> NDArray[np.uint8]:
     raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
     if enc not in CHANNELS:
         raise DecodeError(f"Image encoding {enc!r} unsupported; expected one of {sorted(CHANNELS)}")
+    if h < 1 or w < 1 or step < w * CHANNELS[enc] or raw.size < h * step:
+        raise DecodeError(f"Image {w} x {h} {enc} with step {step} needs {h * max(step, w * CHANNELS[enc])} bytes; it has {raw.size}")
     arr = raw[: h * step].reshape(h, step)[:, : w * CHANNELS[enc]].reshape(h, w, CHANNELS[enc])
     if enc.startswith("bgr"):
         arr = arr[..., [2, 1, 0]]
@@ -42,3 +45,15 @@ def resize_image(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.
     from PIL import Image
 
     return np.asarray(Image.fromarray(img).resize((width, height), Image.BILINEAR))
+
+
+def intrinsics(info: object) -> tuple[NDArray[np.float64], tuple[int, int]]:
+    """Return the intrinsics K (3, 3) of a CameraInfo (ROS 1 or 2 field names) and the
+    (width, height) [px] they are for; raise DecodeError for an uncalibrated one (a size
+    of 0, a K that is not finite or has no focal length), whose K would rescale into
+    infinities."""
+    K = np.asarray(info.k if hasattr(info, "k") else info.K, dtype=np.float64).reshape(3, 3)  # type: ignore[attr-defined]
+    size = (int(info.width), int(info.height))  # type: ignore[attr-defined]
+    if min(size) < 1 or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DecodeError(f"CameraInfo of {size[0]} x {size[1]} px with focal lengths {K[0, 0]}, {K[1, 1]} is not a calibration")
+    return K, size

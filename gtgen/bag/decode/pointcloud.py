@@ -19,8 +19,14 @@ def decode_pointcloud(msg: object) -> NDArray[np.float32]:
         raise DecodeError("PointCloud2 x/y/z must be FLOAT32 or FLOAT64")
     endian = ">" if msg.is_bigendian else "<"  # type: ignore[attr-defined]
     n = int(msg.width) * int(msg.height)  # type: ignore[attr-defined]
+    step = int(msg.point_step)  # type: ignore[attr-defined]
+    ends = [fields[k].offset + np.dtype(FLOAT_KINDS[fields[k].datatype]).itemsize for k in "xyz"]
+    if max(ends) > step:
+        raise DecodeError(f"PointCloud2 fields x, y, z end at bytes {ends}, beyond its point_step {step}")
+    if len(msg.data) < n * step:  # type: ignore[attr-defined]
+        raise DecodeError(f"PointCloud2 has {len(msg.data)} data bytes for {n} points of {step} bytes")  # type: ignore[attr-defined]
     dt = np.dtype({"names": list("xyz"), "formats": [endian + FLOAT_KINDS[fields[k].datatype] for k in "xyz"],
-                   "offsets": [fields[k].offset for k in "xyz"], "itemsize": int(msg.point_step)})  # type: ignore[attr-defined]
+                   "offsets": [fields[k].offset for k in "xyz"], "itemsize": step})
     raw = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
     rec = raw[: n * dt.itemsize].view(dt)
     pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float32)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.errors import DecodeError
 from gtgen.geometry import make_transform, quat_to_matrix
 
 
@@ -16,6 +17,16 @@ def frame_id(name: str) -> str:
 def quat_xyzw(q: object) -> NDArray[np.float64]:
     """Return a geometry_msgs/Quaternion as an xyzw array."""
     return np.array([q.x, q.y, q.z, q.w])  # type: ignore[attr-defined]
+
+
+def odometry_pose(msg: object) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Return the position (3,) and quaternion xyzw (4,) of a nav_msgs/Odometry; raise
+    DecodeError where they are not a pose (not finite, a zero quaternion)."""
+    p = msg.pose.pose.position  # type: ignore[attr-defined]
+    pos, q = np.array([p.x, p.y, p.z]), quat_xyzw(msg.pose.pose.orientation)  # type: ignore[attr-defined]
+    if not (np.isfinite(pos).all() and np.isfinite(q).all() and np.linalg.norm(q) > 0.5):
+        raise DecodeError(f"Odometry pose {pos.tolist()}, quaternion {q.tolist()} is not a pose")
+    return pos, q
 
 
 def transform_matrix(tr: object) -> NDArray[np.float64]:
