@@ -19,7 +19,7 @@ import zarr
 from bagtools import rewrite
 from conftest import SMALL
 from gtgen.bag.reader import stamp_ns
-from gtgen.storage.stores import open_drive
+from gtgen.storage.drive import DriveStore
 
 MICRO, SHORT, VOXEL = "/xracer/map/micro", "/xracer/map/short", "/xracer/voxel_map"
 LEFT, RIGHT = "/cam_left/image/compressed", "/cam_right/image/compressed"
@@ -74,7 +74,7 @@ def assert_same_store(a: Path, b: Path) -> None:
 
 
 def topics(store: Path) -> dict[str, dict]:
-    return {t["topic"]: t for t in open_drive(store).attrs["report"]["topics"]}
+    return {t["topic"]: t for t in DriveStore(store).attrs["report"]["topics"]}
 
 
 def table_row(stdout: str, topic: str) -> list[str]:
@@ -91,7 +91,7 @@ def stamp(msg: object) -> int:
 def needed(drive_store: Path) -> dict[str, set[int]]:
     """Stamps of the messages the clean drive's store holds, per topic. Every candidate of
     the small drive is a sample, so a message no sample uses is one no candidate uses."""
-    g = open_drive(drive_store)
+    g = DriveStore(drive_store).group
     assert (g["candidates/reason"][:] == 0).all()
     return {MICRO: set(g["maps/micro/t_ns"][:].tolist()), SHORT: set(g["maps/short/t_ns"][:].tolist()),
             RIGHT: set(g["samples/image_t_ns"][:, 2].tolist())}
@@ -177,7 +177,7 @@ def test_an_undecodable_message_a_sample_needs_rejects_that_sample(drive_dir, dr
     """Sample 5's left image or voxel map does not decode: each sample that used it takes
     another within its skew tolerance or is rejected with its reason; the others are the
     clean bag's."""
-    clean = open_drive(drive_store)
+    clean = DriveStore(drive_store).group
     col = (lambda g: g[column][:, 1]) if column.endswith("image_t_ns") else (lambda g: g[column][:])
     victim = int(col(clean)[5])
     lost = col(clean) == victim
@@ -192,7 +192,7 @@ def test_an_undecodable_message_a_sample_needs_rejects_that_sample(drive_dir, dr
     p, out = extract(user, bag, "--workers", "1")
     assert p.returncode == 0, p.stderr[-2000:]
     assert topics(out)[topic]["decode_failures"] == 1 and needle in topics(out)[topic]["first_error"]
-    g = open_drive(out)
+    g = DriveStore(out).group
     t_new, t_clean = g["samples/t_ns"][:], clean["samples/t_ns"][:]
     gone = ~np.isin(t_clean, t_new)
     assert gone[lost].any() and not gone[~lost].any() and np.isin(t_new, t_clean).all()
@@ -238,7 +238,7 @@ def test_an_uncalibrated_camera_info_and_a_nan_pose_are_decode_failures(drive_di
     rows = topics(out)
     assert rows["/cam_back/camera_info"]["decode_failures"] == 3 and "not a calibration" in rows["/cam_back/camera_info"]["first_error"]
     assert rows["/xracer/odometry"]["decode_failures"] == len(nan_stamps) == 9 and "not a pose" in rows["/xracer/odometry"]["first_error"]
-    g, clean = open_drive(out), open_drive(drive_store)
+    g, clean = DriveStore(out).group, DriveStore(drive_store).group
     np.testing.assert_array_equal(g["calib/K"][:], clean["calib/K"][:])
     t_clean = clean["poses/t_ns"][:]
     np.testing.assert_array_equal(g["poses/t_ns"][:], t_clean[~np.isin(t_clean, nan_stamps)])
