@@ -74,14 +74,23 @@ def viz(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
     sample: int = typer.Option(0, "--sample", "-n", help="sample index"),
     out: Path = typer.Option(Path("sample.png"), "-o", "--out", help="PNG to write"),
+    ckpt: Optional[Path] = typer.Option(None, "--ckpt", help="also draw this checkpoint's predictions"),
+    device: Optional[str] = typer.Option(None, help="device of the prediction: auto | cpu | cuda | cuda:N [default: auto]"),
 ) -> None:
     """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
 
     **Examples**
 
         gtgen viz --sample 12 -o s12.png
+
+        gtgen viz --sample 12 --ckpt runs/latest/best.pt --device cuda -o s12_pred.png
     """
     from gtgen.viz import render_sample
 
-    p = render_sample(dataset, sample, out)
+    pred = None
+    if ckpt is not None:
+        from gtgen.train.trainer import predict_sample
+
+        pred = predict_sample(dataset, ckpt, sample, device)
+    p = render_sample(dataset, sample, out, pred)
     table("gtgen viz", [("figure", p)])
