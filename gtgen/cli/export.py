@@ -10,7 +10,7 @@ import typer
 from gtgen.cli.app import WORKSPACE, app, table
 
 export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown",
-                     help="Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.")
+                     help="Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove; or a trained model as ONNX.")
 app.add_typer(export, name="export")
 
 
@@ -63,3 +63,23 @@ def mcap(
     res = export_mcap(dataset, out)
     rows = [("out", res.out), ("samples", res.samples)] + [(f"  {k}", v) for k, v in res.counts.items()]
     table("gtgen export mcap", rows)
+
+
+@export.command()
+def onnx(
+    ckpt: Path = typer.Option(Path("runs/latest/ckpt.pt"), "--ckpt", help="checkpoint from 'gtgen train'"),
+    out: Path = typer.Option(Path("model.onnx"), "-o", "--out", help=".onnx file to write"),
+) -> None:
+    """Write the trained network as one ONNX graph (opset 18, batch 1) for onnxruntime or
+    TensorRT: inputs, their layout and normalisation in the README ("Deployment") and in
+    gtgen/train/onnx.py.
+
+    **Examples**
+
+        gtgen export onnx --ckpt runs/latest/best.pt -o model.onnx
+    """
+    from gtgen.train.onnx import export_onnx
+
+    res = export_onnx(ckpt, out)
+    table("gtgen export onnx", [("out", res.out), ("checkpoint", f"{ckpt} (preset {res.preset}, step {res.step})"),
+                                ("inputs", ", ".join(res.inputs)), ("outputs", ", ".join(res.outputs))])

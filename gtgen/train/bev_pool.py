@@ -15,6 +15,15 @@ from __future__ import annotations
 import torch
 
 
+def add_rows(target: torch.Tensor, index: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Return ``target`` (n, C) with ``rows`` (m, C) added at the rows ``index`` (m,), in
+    place: ``index_add_``, or while exporting to ONNX (whose exporter refuses a repeated index
+    there) the equivalent ``scatter_add``."""
+    if torch.onnx.is_in_onnx_export():
+        return target.scatter_add(0, index[:, None].expand(-1, rows.shape[1]), rows)
+    return target.index_add_(0, index, rows)
+
+
 def bev_pool_naive(depth: torch.Tensor, feat: torch.Tensor, cell: torch.Tensor, n_cells: int) -> torch.Tensor:
     """Return (n_cells, C): the sums of ``depth`` (N, D, P) x ``feat`` (N, P, C) over the
     cells ``cell`` (N, D, P, int64; ``n_cells`` or more: outside the grid), through the
@@ -38,7 +47,7 @@ def _splat(depth: torch.Tensor, feat: torch.Tensor, cell: torch.Tensor, n_cells:
     bev = feat.new_zeros(n_cells + 1, C)
     for d0 in range(0, depth.shape[1], chunk):
         lifted = depth[:, d0 : d0 + chunk, :, None] * feat[:, None]
-        bev.index_add_(0, cell[:, d0 : d0 + chunk].reshape(-1), lifted.reshape(-1, C))
+        bev = add_rows(bev, cell[:, d0 : d0 + chunk].reshape(-1), lifted.reshape(-1, C))
     return bev[:n_cells]
 
 

@@ -234,6 +234,15 @@ class ShardDataset(Dataset):
         clip = self.tc.elevation_clip_m
         return np.stack([np.clip(filled(smoothed_min_z(grid, window)), -clip, clip) / clip, point_distance(grid)]).astype(np.float32)
 
+    def _micro_prior(self, raw_s: NDArray) -> NDArray[np.float32]:
+        """Return the micro prior (2, m, m) of the stored min-z grid ``raw_s`` computed at its
+        own resolution on the cells holding its centre half (one more for an odd half: 126 of
+        250), then sampled bilinearly at the micro cells' centres."""
+        n_s = raw_s.shape[0]
+        lo, hi = centre_half_slab(n_s)
+        prior = self._prior(raw_s[lo:hi, lo:hi], self._prior_win["centre"])
+        return _bilinear_at(prior, centre_half_coords(n_s, self.tc.micro_size) - lo).astype(np.float32)
+
     def __len__(self) -> int:
         return len(self.indices)
 
@@ -297,11 +306,8 @@ class ShardDataset(Dataset):
         # the priors the heads correct, each range at its own resolution, scaled like "raw":
         # (smoothed min z filled everywhere, distance to the nearest cell with points)
         out["prior"] = torch.from_numpy(self._prior(raw, self._prior_win["short"]))
-        if tc.micro_size > n_s // 2:  # finer than the points' grid: computed on the cells holding
-            # the centre half (one more for an odd half), then sampled at the micro cells' centres
-            lo, hi = centre_half_slab(n_s)
-            prior = self._prior(raw_s[lo:hi, lo:hi], self._prior_win["centre"])
-            out["prior_micro"] = torch.from_numpy(_bilinear_at(prior, centre_half_coords(n_s, tc.micro_size) - lo).astype(np.float32))
+        if tc.micro_size > n_s // 2:  # finer than the points' grid: computed on it, then resampled
+            out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s))
         else:
             out["prior_micro"] = torch.from_numpy(self._prior(raw_m, self._prior_win["micro"]))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))

@@ -62,8 +62,8 @@ class LiftSplat(nn.Module):
         depth = f[:, : self.D].float().softmax(1).flatten(2)  # (BN, D, hw)
         feat = f[:, self.D :].float().flatten(2).transpose(1, 2)  # (BN, hw, C)
         # pixel centres of the feature map in input-image pixels (ROS convention)
-        u = (torch.arange(w, device=f.device) + 0.5) * (W / w) - 0.5
-        v = (torch.arange(h, device=f.device) + 0.5) * (H / h) - 0.5
+        u = (torch.arange(w, device=f.device, dtype=torch.float32) + 0.5) * (W / w) - 0.5
+        v = (torch.arange(h, device=f.device, dtype=torch.float32) + 0.5) * (H / h) - 0.5
         vv, uu = torch.meshgrid(v, u, indexing="ij")
         pix = torch.stack([uu, vv, torch.ones_like(uu)], -1).reshape(-1, 3)  # (hw, 3)
         rays = torch.einsum("bij,pj->bpi", _inverse_K(K.flatten(0, 1).float()), pix)  # (BN, hw, 3), z = 1

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from gtgen.train.backbones import ResBlock
+from gtgen.train.bev_pool import add_rows
 
 
 def pillarize(points: torch.Tensor, n_points: torch.Tensor, size: int, res: float, max_pillars: int, per_pillar: int,
@@ -86,8 +87,8 @@ class PointPillars(nn.Module):
         L = S * res
         ncell = batch * S * S
         pts = pts.float()
-        cnt = pts.new_zeros(ncell).index_add_(0, cell, torch.ones_like(pts[:, 0]))
-        mean = pts.new_zeros(ncell, 3).index_add_(0, cell, pts) / cnt.clamp(min=1)[:, None]
+        sums = add_rows(pts.new_zeros(ncell, 4), cell, torch.cat([pts, torch.ones_like(pts[:, :1])], 1))
+        mean = sums[:, :3] / sums[:, 3:].clamp(min=1)
         cx = ((cell // S) % S).to(pts.dtype) * res - L / 2 + res / 2
         cy = (cell % S).to(pts.dtype) * res - L / 2 + res / 2
         feats = torch.cat([pts, pts - mean[cell], (pts[:, 0] - cx)[:, None], (pts[:, 1] - cy)[:, None]], 1)

@@ -510,8 +510,9 @@ def _trained_model(state: dict, tc: TrainConfig, data_cfg: GtgenConfig) -> MMLit
     model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
     try:
         model.load_state_dict(state["model"])
-    except RuntimeError as err:
-        raise TrainError(f"checkpoint's weights do not fit its model: {str(err).splitlines()[0]} {str(err).splitlines()[1].strip() if len(str(err).splitlines()) > 1 else ''}".strip()) from err
+    except RuntimeError as err:  # torch lists every mismatch, one per line after a heading
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+        raise TrainError(f"checkpoint's weights do not fit its model ({lines[-1] if lines else err}); retrain with this version") from err
     return model.eval()
 
 
