@@ -75,7 +75,7 @@ def test_the_step_sampler_splits_global_batches_and_resumes():
     # a permutation: no sample twice within an epoch
     for e in (0, 1):
         seen = steps[2 * e] + steps[2 * e + 1]
-        assert len(set(seen)) == 4 and set(seen) <= set(range(10))
+        assert len(set(seen)) == 8 and set(seen) <= set(range(10))
     assert steps[0] + steps[1] != steps[2] + steps[3]  # another permutation next epoch
     later = iter(StepBatchSampler(10, 4, seed=3, start_step=3))
     assert [next(later) for _ in range(3)] == steps[3:]
@@ -251,7 +251,7 @@ def test_damaged_checkpoints_are_one_line_errors(dataset, tmp_path):
     (tmp_path / "truncated.pt").write_bytes(good[: len(good) // 2])
     flipped = bytearray(good)
     state = _state(tmp_path / "run" / "ckpt.pt")
-    w = state["model"]["enc1.a.0.weight"].contiguous().view(torch.uint8).numpy().tobytes()
+    w = state["model"]["pillars.pfn.0.weight"].contiguous().view(torch.uint8).numpy().tobytes()
     at = bytes(good).find(w[:64])  # inside that tensor's stored bytes
     assert at > 0
     flipped[at + 8] ^= 0x40

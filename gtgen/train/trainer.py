@@ -195,7 +195,7 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
     ds, val = _datasets(dataset, tc)
     model = build_model(tc, ds.data_cfg).to(dev)
     counts = parameter_counts(model)
-    ckpt_path, best_path = run_dir / "ckpt.pt", run_dir / "best.pt"
+    ckpt_path = run_dir / "ckpt.pt"
     with contextlib.ExitStack() as stack:
         err = ""
         if procs.main:
@@ -286,7 +286,7 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
                 curves.log("train", step, row)
             if val is not None and (step % tc.val_every == 0 or step == end):
                 if procs.main:
-                    best = _validate(model, val, tc, dev, precision, step, curves, best, best_path,
+                    best = _validate(model, val, tc, dev, precision, step, curves, best, run_dir / "best.pt",
                                      lambda: _payload(model, opt, sched, scaler, step, history, best, cfg, ds))
                 D.barrier(procs)
             if procs.main and (step % tc.ckpt_every == 0 or step == end):
