@@ -18,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 from _common import OUT, drive, header, run_measured
 
@@ -159,17 +160,20 @@ def py(code: str, *args: str) -> list[str]:
 
 if __name__ == "__main__":
     header("bench/train.py")
-    d = drive(120)
-    ws = OUT / "ws_pipeline"
-    if not (ws / "dataset.zarr").is_dir():
-        ws.mkdir(parents=True, exist_ok=True)
-        run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
-        run_measured(["fuse", str(ws / "drive.zarr")])
-        run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
+    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else None  # an existing one instead of a new drive
+    if dataset is None:
+        d = drive(120)
+        ws = OUT / "ws_pipeline"
+        dataset = ws / "dataset.zarr"
+        if not dataset.is_dir():
+            ws.mkdir(parents=True, exist_ok=True)
+            run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
+            run_measured(["fuse", str(ws / "drive.zarr")])
+            run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
     run = OUT / "run_tiny"
     shutil.rmtree(run, ignore_errors=True)
     steps = 40
-    dt, rss = run_measured(["train", str(ws / "dataset.zarr"), "--preset", "tiny", "--steps", str(steps), "--run-dir", str(run)])
+    dt, rss = run_measured(["train", str(dataset), "--preset", "tiny", "--steps", str(steps), "--run-dir", str(run)])
     print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up and 1 validation ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
     B = os.environ.get("BENCH_PAPER_BATCH", "1")
     runs = {p: py(PAPER_STEP, B, p) for p in ("chunked", "naive")}
@@ -189,8 +193,8 @@ if __name__ == "__main__":
         ms = 1000 * float(py(INFER, preset)[0])
         print(f"{preset} preset: inference {ms:.0f} ms per sample on CPU (batch 1, no gradient)" + (" (paper: 100 ms on a GPU)" if preset == "paper" else ""))
     for preset in ("tiny", "paper"):
-        rates = [float(py(LOADER, str(ws / "dataset.zarr"), str(w), preset)[-1]) for w in (0, 2)]
+        rates = [float(py(LOADER, str(dataset), str(w), preset)[-1]) for w in (0, 2)]
         print(f"ShardDataset ({preset} preset) through a DataLoader: {rates[0]:.1f} / {rates[1]:.1f} samples/s with 0 / 2 workers "
               f"({rates[1] / rates[0]:.2f}x; goal >= 50)")
-    ratio, ms, n = py(FILL, str(ws / "dataset.zarr"))
+    ratio, ms, n = py(FILL, str(dataset))
     print(f"prior fill of the stored {n} x {n} min-z grids: the pyramid {float(ratio):.1f}x faster than every scale at full resolution ({float(ms):.1f} ms per grid)")
