@@ -272,3 +272,28 @@ def test_damaged_checkpoints_are_one_line_errors(dataset, tmp_path):
         from gtgen.train.checkpoint import load_checkpoint
 
         load_checkpoint(tmp_path / "flipped.pt")
+
+
+def test_gpu_check_script_runs_in_its_cpu_mode(dataset, tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("the GPU mode trains the paper preset for 300 steps")
+    root = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, GPU_CHECK_OUT=str(tmp_path / "gc"), GPU_CHECK_STEPS="2", PYTHON=sys.executable)
+    p = subprocess.run(["bash", str(root / "scripts" / "gpu_check.sh"), str(dataset)], capture_output=True, text=True, timeout=600, env=env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = {line[:28].strip(): line[29:] for line in p.stdout.splitlines()[1:]}  # "key (padded to 28) value"
+    assert p.stdout.startswith("gpu_check: cpu mode (tiny preset, 2 steps on cpu)")
+    assert "steps/s" in out["training"] and "samples/s" in out["training"] and out["peak GPU memory (training)"] == "n/a (CPU)"
+    assert "ms per sample on cpu" in out["eval"] and "ms per sample (batch 1, 32)" in out["inference latency"]
+    assert json.loads((tmp_path / "gc" / "runs" / "tiny" / "metrics.json").read_text())["processes"] == 1
+
+
+def test_paper_faithful_config_holds_the_papers_choices():
+    from gtgen.config import configs_dir
+    from gtgen.train.presets import preset_overrides
+
+    cfg = load_config(configs_dir() / "paper_faithful.yaml", preset_overrides("paper"))
+    tc = cfg.train
+    assert (tc.risk_loss, tc.elevation_beta_m, tc.mirror_p) == ("mse", tc.elevation_clip_m, 0.0)  # Smooth-L1's beta 1 on the +-1 scale
+    assert (tc.batch_size, tc.steps, tc.lr, tc.image_backbone) == (6, 16000, 5e-4, "efficientnet_b0")
+    assert (tc.alpha, tc.mu, tc.lam, tc.gamma) == (0.2, 2.0, 2.0, 5.0)

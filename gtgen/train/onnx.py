@@ -29,6 +29,7 @@ risk 0..1. Grids are indexed (x, y), x forward, cell 0 at the most negative coor
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,7 +97,9 @@ def export_onnx(ckpt: Path, out: Path) -> OnnxResult:
     model = _trained_model(state, tc, data_cfg).requires_grad_(False)
     args = example_inputs(tc)
     net = Deployable(model).eval()
-    with atomic_output(out) as tmp, torch.no_grad():
+    with atomic_output(out) as tmp, torch.no_grad(), warnings.catch_warnings():
+        # the tracer warns of every Python branch on a shape: the graph is for these shapes
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
         torch.onnx.export(net, args, str(tmp), dynamo=False, opset_version=OPSET, input_names=list(INPUTS), output_names=list(OUTPUTS),
                           dynamic_axes={"pillar_points": {0: "n"}, "pillar_cells": {0: "n"}})
     return OnnxResult(out, INPUTS, OUTPUTS, state["preset"], state["step"])

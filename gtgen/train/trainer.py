@@ -27,7 +27,7 @@ from gtgen.runtime.output import lock, remove, write_atomic
 from gtgen.runtime.progress import track
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
-from gtgen.train.checkpoint import CKPT_VERSION, load_checkpoint, save_checkpoint  # noqa: F401  (CKPT_VERSION re-exported)
+from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
 from gtgen.train.data import ShardDataset, nearest_filled
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
@@ -443,11 +443,6 @@ def _link_latest(run_dir: Path) -> None:
         if latest.is_symlink():
             latest.unlink()
         latest.symlink_to(run_dir.name)
-
-
-def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:
-    """Return a checkpoint's state with its validated train and data configs."""
-    return load_checkpoint(path, None if tc is None else tc.preset)
 
 
 def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None) -> dict:
