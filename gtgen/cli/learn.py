@@ -15,7 +15,7 @@ from gtgen.errors import GtgenError
 def train_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", help="dataset from 'gtgen dem-align'"),
     preset: str = typer.Option("tiny", help="tiny (CPU, minutes) | paper (the paper's network, GPU)"),
-    run: Optional[Path] = typer.Option(None, "--run-dir", "--run", help="run folder [default: runs/<preset>, or runs/<preset>-seed<k> with --seeds]; under torchrun spell it --run-dir"),
+    run: Optional[Path] = typer.Option(None, "--run-dir", "--run", help="run folder [default: runs/PRESET, or runs/PRESET-seedK with --seeds]; under torchrun spell it --run-dir"),
     resume: bool = typer.Option(False, help="continue from the run folder's checkpoint (the same run: same samples, same draws)"),
     steps: Optional[int] = typer.Option(None, min=1, help="stop after this many more steps (the schedule keeps the preset's total)"),
     seeds: int = typer.Option(1, min=1, help="train this many seeds (train.seed, +1, ...), one run folder each, one after the other"),
