@@ -286,10 +286,10 @@ def test_bad_training_input_one_line(dataset, tmp_path):
     assert p.returncode == 1 and "no 'val' samples" in p.stderr and "--split all" in p.stderr and "Traceback" not in p.stderr
     # an old checkpoint format
     state = torch.load(tmp_path / "run" / "ckpt.pt", map_location="cpu", weights_only=False)
-    state["version"] = 2  # this gtgen writes 4
+    state["version"] = 2  # this gtgen writes 5
     torch.save(state, tmp_path / "old.pt")
     p = run_cli("eval", dataset, "--ckpt", tmp_path / "old.pt", "--split", "all", cwd=tmp_path)
-    assert p.returncode == 1 and "version 4 (found 2)" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert p.returncode == 1 and "version 5 (found 2)" in p.stderr and len(p.stderr.strip().splitlines()) == 1
     # grids the model cannot tile
     from gtgen.train.trainer import build_model
 

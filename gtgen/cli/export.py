@@ -9,13 +9,14 @@ import typer
 
 from gtgen.cli.app import WORKSPACE, OverwriteOpt, app, table
 
-export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown", help="""Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove.
+export = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown", help="""Export a dataset: GeoTIFF mosaics for GIS, one MCAP recording for Foxglove; or a trained model as ONNX.
 
 **Examples**
 
 ```
 gtgen export geotiff -o qgis/
 gtgen export mcap -o labels.mcap
+gtgen export onnx --ckpt runs/latest/best.pt -o model.onnx
 ```
 """)
 app.add_typer(export, name="export")
@@ -84,3 +85,26 @@ def mcap(
     res = export_mcap(dataset, out, overwrite=overwrite)
     rows = [("out", res.out), ("samples", res.samples)] + [(f"  {k}", v) for k, v in res.counts.items()]
     table("gtgen export mcap", rows)
+
+
+@export.command()
+def onnx(
+    ckpt: Path = typer.Option(Path("runs/latest/ckpt.pt"), "--ckpt", metavar="CKPT", help="checkpoint from 'gtgen train'"),
+    out: Path = typer.Option(Path("model.onnx"), "-o", "--out", help=".onnx file to write"),
+    overwrite: bool = OverwriteOpt,
+) -> None:
+    """Write the trained network as one ONNX graph (opset 18, batch 1) for onnxruntime or
+    TensorRT: inputs, their layout and normalisation in the README ("Deployment") and in
+    gtgen/train/onnx.py.
+
+    **Examples**
+
+    ```
+    gtgen export onnx --ckpt runs/latest/best.pt -o model.onnx
+    ```
+    """
+    from gtgen.train.onnx import export_onnx
+
+    res = export_onnx(ckpt, out, overwrite=overwrite)
+    table("gtgen export onnx", [("out", res.out), ("checkpoint", f"{ckpt} (preset {res.preset}, step {res.step})"),
+                                ("inputs", ", ".join(res.inputs)), ("outputs", ", ".join(res.outputs))])

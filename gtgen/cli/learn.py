@@ -14,22 +14,25 @@ from gtgen.errors import GtgenError
 @app.command("train")
 def train_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
-    preset: str = typer.Option("tiny", metavar="tiny|paper", help="tiny (CPU, minutes) or paper (paper sizes, GPU)"),
-    run: Optional[Path] = typer.Option(None, "--run", help="run folder [default: runs/PRESET, or runs/PRESET-seedK with --seeds]"),
-    resume: bool = typer.Option(False, help="continue from the run folder's checkpoint"),
-    steps: Optional[int] = typer.Option(None, help="stop after this many more steps (the schedule keeps the preset's total)"),
-    seeds: int = typer.Option(1, min=1, help="train this many seeds (train.seed, +1, ...), one run folder each"),
+    preset: str = typer.Option("tiny", metavar="tiny|paper", help="tiny (CPU, minutes) or paper (the paper's network, GPU)"),
+    run: Optional[Path] = typer.Option(None, "--run-dir", "--run", help="run folder [default: runs/PRESET, or runs/PRESET-seedK with --seeds]; under torchrun spell it --run-dir"),
+    resume: bool = typer.Option(False, help="continue from the run folder's checkpoint (the same run: same samples, same draws)"),
+    steps: Optional[int] = typer.Option(None, min=1, help="stop after this many more steps (the schedule keeps the preset's total)"),
+    seeds: int = typer.Option(1, min=1, max=1000, help="train this many seeds (train.seed, +1, ...), one run folder each, one after the other"),
+    device: Optional[str] = typer.Option(None, metavar="DEVICE", help="auto | cpu | cuda | cuda:N [default: train.device, auto: CUDA when present]"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
-    """Train M&M-lite on the dataset's train split; checkpoints, metrics JSON, resolved config.
+    """Train M&M-lite on the dataset's train split: checkpoints (ckpt.pt, best.pt by val MAE),
+    curves (TensorBoard tb/, train.csv, val.csv), metrics JSON, resolved config.
 
     **Examples**
 
     ```
     gtgen train                         # tiny preset -> runs/tiny/
     gtgen train --seeds 3               # runs/tiny-seed0 .. runs/tiny-seed2
-    gtgen train --preset paper --config gpu.yaml
-    gtgen train --resume --run runs/tiny
+    gtgen train --preset paper --config configs/paper_faithful.yaml
+    gtgen train --resume --run-dir runs/tiny
+    torchrun --standalone --nproc_per_node 2 -m gtgen train --preset paper --run-dir runs/paper
     ```
     """
     from gtgen.config import load_config
@@ -38,19 +41,28 @@ def train_cmd(
     layer = preset_overrides(preset)
     cfg = load_config(None, layer) if config is None else load_config(None, layer, read_yaml(config))
     rows: list[tuple[str, Any]] = []
+    main = True
     for i in range(seeds):
         seed = cfg.train.seed + i
         one = cfg.model_copy(update={"train": cfg.train.model_copy(update={"seed": seed})})
         base = run or Path("runs") / preset
         run_dir = base if seeds == 1 else base.with_name(f"{base.name}-seed{seed}")
-        res = train(dataset, run_dir, one, resume=resume, max_steps=steps)
+        res = train(dataset, run_dir, one, resume=resume, max_steps=steps, device=device)
+        main = res.rank == 0
         tag = "" if seeds == 1 else f" (seed {seed})"
+        if i == 0:
+            rows += [("device", f"{res.device}, precision {res.precision}" + (f", {res.world} processes (DDP)" if res.world > 1 else ""))]
+            rows += [(f"parameters: {k}", f"{v / 1e6:.2f} M") for k, v in res.parameters.items()]
+        best = f"step {res.best['step']}: {res.best['total_mae_m']:.3f} m (val MAE, micro and short)" if res.best else "no validation"
         rows += [
-            (f"run{tag}", res.run_dir), (f"checkpoint{tag}", res.ckpt), (f"steps{tag}", res.steps),
+            (f"run{tag}", res.run_dir), (f"checkpoint{tag}", res.ckpt), (f"best.pt{tag}", best), (f"steps{tag}", res.steps),
             (f"loss first -> last{tag}", f"{res.first_loss:.4f} -> {res.last_loss:.4f}"),
-            (f"time{tag}", f"{res.seconds:.1f} s ({res.steps and res.seconds / max(res.steps, 1):.2f} s/step this run)"),
+            (f"time{tag}", f"{res.seconds:.1f} s; {res.samples_per_s:.2f} samples/s, {100 * res.data_wait_share:.0f} % of it waiting for data"),
         ]
-    table("gtgen train", rows)
+        if res.peak_memory_mib is not None:
+            rows.append((f"peak GPU memory{tag}", f"{res.peak_memory_mib:.0f} MiB"))
+    if main:
+        table("gtgen train", rows)
 
 
 def _checkpoints(patterns: list[Path]) -> list[Path]:
@@ -85,6 +97,7 @@ def eval_cmd(
     split: str = typer.Option("val", metavar="val|train|all", help="the split to evaluate"),
     viz: Optional[int] = typer.Option(None, "--viz", metavar="SAMPLE", help="also draw this sample with the predictions (of the first checkpoint)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the (first) checkpoint]"),
+    device: Optional[str] = typer.Option(None, help="auto | cpu | cuda | cuda:N [default: auto, CUDA when present]"),
 ) -> None:
     """Paper-style tables: elevation MAE per region, risk MSE/P/R/F1, consistency; baselines.
 
@@ -95,7 +108,7 @@ def eval_cmd(
     ```
     gtgen eval --ckpt runs/latest/ckpt.pt
     gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'   # mean ± spread of seeds
-    gtgen eval data/test.zarr --ckpt runs/paper/ckpt.pt --split all --viz 3
+    gtgen eval data/test.zarr --ckpt runs/paper/best.pt --split all --viz 3 --device cuda
     ```
     """
 
@@ -107,7 +120,7 @@ def eval_cmd(
         raise GtgenError(f"--split {split!r} unknown; expected one of ['val', 'train', 'all']")
     ckpts = _checkpoints(ckpt)
     sp = None if split == "all" else split
-    res = evaluate(dataset, ckpts[0], preset, sp) if len(ckpts) == 1 else evaluate_seeds(dataset, ckpts, sp)
+    res = evaluate(dataset, ckpts[0], preset, sp, device) if len(ckpts) == 1 else evaluate_seeds(dataset, ckpts, sp, device)
     if preset is not None and len(ckpts) > 1 and res["preset"] != preset:
         raise GtgenError(f"checkpoints are of preset {res['preset']!r}, not {preset!r}")
     con = console()
@@ -129,11 +142,12 @@ def eval_cmd(
     from gtgen.runtime.output import write_json
 
     write_json(out, res, indent=1)
-    rows: list[tuple[str, Any]] = [("consistency MAE", f"{_cell(res, ('consistency_mae_m',))} m"), ("metrics", out)]
+    rows: list[tuple[str, Any]] = [("consistency MAE", f"{_cell(res, ('consistency_mae_m',))} m"),
+                                   ("device", f"{res['device']}, {1000 * res['seconds_per_sample']:.1f} ms per sample"), ("metrics", out)]
     if viz is not None:
         from gtgen.train.trainer import predict_sample
         from gtgen.viz import render_sample
 
-        png = render_sample(dataset, viz, ckpts[0].parent / f"pred_{viz}.png", predict_sample(dataset, ckpts[0], viz))
+        png = render_sample(dataset, viz, ckpts[0].parent / f"pred_{viz}.png", predict_sample(dataset, ckpts[0], viz, device))
         rows.append(("prediction figure", png))
     table("gtgen eval", rows)

@@ -80,6 +80,8 @@ def viz(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
     sample: int = typer.Option(0, "--sample", "-n", min=0, help="sample index (0 is the first)"),
     out: Path = typer.Option(Path("sample.png"), "-o", "--out", help="PNG to write"),
+    ckpt: Optional[Path] = typer.Option(None, "--ckpt", metavar="CKPT", help="also draw this checkpoint's predictions"),
+    device: Optional[str] = typer.Option(None, help="device of the prediction: auto | cpu | cuda | cuda:N [default: auto]"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
     """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
@@ -91,11 +93,17 @@ def viz(
     ```
     gtgen viz --sample 12 -o s12.png
     gtgen viz datasets/paso.zarr -n 0 -o first.png
+    gtgen viz --sample 12 --ckpt runs/latest/best.pt --device cuda -o s12_pred.png
     ```
     """
     from gtgen.viz import render_sample
 
-    p = render_sample(dataset, sample, out, overwrite=overwrite)
+    pred = None
+    if ckpt is not None:
+        from gtgen.train.trainer import predict_sample
+
+        pred = predict_sample(dataset, ckpt, sample, device)
+    p = render_sample(dataset, sample, out, pred, overwrite=overwrite)
     table("gtgen viz", [("figure", p)])
 
 

@@ -27,6 +27,25 @@ def nearest_index(src_size: int, dst_size: int) -> NDArray[np.int64]:
     return np.clip(np.floor(centres).astype(np.int64), 0, src_size - 1)
 
 
+def centre_half_coords(n_src: int, n_dst: int) -> NDArray[np.float64]:
+    """Return the coordinates, in source cells (cell i's centre at i), of the centres of
+    ``n_dst`` cells spanning exactly the centre half of an ``n_src``-cell grid: the micro
+    range inside the short one (for 250 short cells the half starts at 62.5 cells)."""
+    return n_src / 4 + (np.arange(n_dst) + 0.5) * (n_src / 2) / n_dst - 0.5
+
+
+def centre_half_slab(n_src: int) -> tuple[int, int]:
+    """Return the smallest cell range [lo, hi) of an ``n_src``-cell grid holding its centre half."""
+    return n_src // 4, -(-3 * n_src // 4)
+
+
+def micro_view(raw: NDArray, n_dst: int) -> NDArray:
+    """Return the square grid ``raw`` (n, n) over exactly its centre half at ``n_dst`` cells,
+    each taking the source cell its centre lies in (NaN stays NaN)."""
+    ix = np.clip(np.floor(centre_half_coords(raw.shape[0], n_dst) + 0.5).astype(np.int64), 0, raw.shape[0] - 1)
+    return raw[np.ix_(ix, ix)]
+
+
 def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
     """Return the min-z grid averaged over its valid cells in a ``size`` x ``size`` window,
     at the valid cells only (normalized convolution; NaN elsewhere).
@@ -160,7 +179,8 @@ class ShardDataset(Dataset):
     K                            (4, 3, 3), float32      intrinsics at the model's image size [px]
     T_target_cam                 (4, 4, 4), float32      target <- camera optical [m]
     points, n_points             (P, 3) float32, ()      voxel points in the target frame [m], the
-                                                         first n_points valid (P = max_points)
+                                                         first n_points valid (P = max_points,
+                                                         default shards.max_voxel_points)
     raw                          (2, n_s, n_s), float32  min-z per short cell / elevation_clip_m
                                                          (0 where none), and its validity (0/1)
     prior, prior_micro           (2, n, n), float32      smoothed min z filled everywhere (scaled
@@ -174,7 +194,7 @@ class ShardDataset(Dataset):
     ===========================  ======================  ==========================================
     """
 
-    def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int = 60000) -> None:
+    def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int | None = None) -> None:
         store = DatasetStore(path)
         if store.n_samples == 0:
             raise TrainError(f"dataset '{path}' has no samples; nothing to train or evaluate on")
@@ -187,7 +207,9 @@ class ShardDataset(Dataset):
             code = codes.split_code(split)
             idx = idx[store.meta("split") == code]
         self.indices = idx
-        self.max_points = max_points
+        # every stored point by default (the store keeps at most shards.max_voxel_points):
+        # PointPillars caps pillars, not points
+        self.max_points = max_points or self.data_cfg.shards.max_voxel_points
         self._r: dict | None = None
         self._offsets = store.voxel_offsets()
         self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
@@ -210,6 +232,15 @@ class ShardDataset(Dataset):
         everywhere, scaled like "raw", and the distance to the nearest cell with points / n."""
         clip = self.tc.elevation_clip_m
         return np.stack([np.clip(filled(smoothed_min_z(grid, window)), -clip, clip) / clip, point_distance(grid)]).astype(np.float32)
+
+    def _micro_prior(self, raw_s: NDArray) -> NDArray[np.float32]:
+        """Return the micro prior (2, m, m) of the stored min-z grid ``raw_s`` computed at its
+        own resolution on the cells holding its centre half (one more for an odd half: 126 of
+        250), then sampled bilinearly at the micro cells' centres."""
+        n_s = raw_s.shape[0]
+        lo, hi = centre_half_slab(n_s)
+        prior = self._prior(raw_s[lo:hi, lo:hi], self._prior_win["centre"])
+        return _bilinear_at(prior, centre_half_coords(n_s, self.tc.micro_size) - lo).astype(np.float32)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -270,16 +301,15 @@ class ShardDataset(Dataset):
             out[f"{r}/region"] = torch.from_numpy(self._grid(g[("labels", r, "region")][k], r).astype(np.int64))
             out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[("xracer", r, "elevation_m")][k], r).astype(np.float32))
             out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
-        # the raw min-z grid is short range; its micro view is the centre crop, upsampled
+        # the raw min-z grid is short range; its micro view is exactly its centre half
         n_s = raw_s.shape[0]
-        centre = raw_s[n_s // 4 : n_s - n_s // 4, n_s // 4 : n_s - n_s // 4]
-        raw_m = centre[np.ix_(nearest_index(centre.shape[0], tc.micro_size), nearest_index(centre.shape[1], tc.micro_size))]
+        raw_m = micro_view(raw_s, tc.micro_size)
         out["micro/raw_elevation"] = torch.from_numpy(raw_m.astype(np.float32))
         # the priors the heads correct, each range at its own resolution, scaled like "raw":
         # (smoothed min z filled everywhere, distance to the nearest cell with points)
         out["prior"] = torch.from_numpy(self._prior(raw, self._prior_win["short"]))
-        if tc.micro_size > centre.shape[0]:  # finer than the points' grid: computed on it, then resampled
-            out["prior_micro"] = torch.from_numpy(resample_bilinear(self._prior(centre, self._prior_win["centre"]), tc.micro_size))
+        if tc.micro_size > n_s // 2:  # finer than the points' grid: computed on it, then resampled
+            out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s))
         else:
             out["prior_micro"] = torch.from_numpy(self._prior(raw_m, self._prior_win["micro"]))
         out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))

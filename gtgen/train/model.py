@@ -11,6 +11,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from gtgen.config import TrainConfig
+from gtgen.train.backbones import EfficientNetFPN, ResBlock, SmallCNN, _block
+from gtgen.train.bev_pool import bev_pool
+from gtgen.train.pillars import PointPillars
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 IMAGE_STD = (0.229, 0.224, 0.225)
@@ -24,36 +27,15 @@ def normalize_images(images: torch.Tensor) -> torch.Tensor:
     return (images.float() * (1.0 / 255.0) - mean) / std
 
 
-def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
-
-
-class ResBlock(nn.Module):
-    def __init__(self, cin: int, cout: int) -> None:
-        super().__init__()
-        self.a = _block(cin, cout)
-        self.b = nn.Sequential(nn.Conv2d(cout, cout, 3, 1, 1, bias=False), nn.BatchNorm2d(cout))
-        self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.relu(self.b(self.a(x)) + self.skip(x))
-
-
-class ImageBackbone(nn.Module):
-    """A small CNN to 1/8 resolution with an FPN-style merge of the last two scales."""
-
-    def __init__(self, c: int) -> None:
-        super().__init__()
-        self.s1 = nn.Sequential(_block(3, c // 2, 2), _block(c // 2, c // 2))
-        self.s2 = nn.Sequential(_block(c // 2, c, 2), ResBlock(c, c))
-        self.s3 = nn.Sequential(_block(c, 2 * c, 2), ResBlock(2 * c, 2 * c))
-        self.s4 = nn.Sequential(_block(2 * c, 2 * c, 2), ResBlock(2 * c, 2 * c))
-        self.merge = ResBlock(4 * c, 2 * c)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x3 = self.s3(self.s2(self.s1(x)))
-        x4 = F.interpolate(self.s4(x3), size=x3.shape[-2:], mode="bilinear", align_corners=False)
-        return self.merge(torch.cat([x3, x4], 1))
+def _inverse_K(K: torch.Tensor) -> torch.Tensor:
+    """Return the inverses of intrinsics ``K`` (..., 3, 3), upper triangular with a last row
+    (0, 0, 1), in closed form (elementwise ops: exact, and exportable to ONNX, which has no
+    matrix inverse)."""
+    fx, s, cx, fy, cy = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2], K[..., 1, 1], K[..., 1, 2]
+    z, o = torch.zeros_like(fx), torch.ones_like(fx)
+    rows = [torch.stack([1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], -1),
+            torch.stack([z, 1 / fy, -cy / fy], -1), torch.stack([z, z, o], -1)]
+    return torch.stack(rows, -2)
 
 
 class LiftSplat(nn.Module):
@@ -61,85 +43,43 @@ class LiftSplat(nn.Module):
 
     def __init__(self, tc: TrainConfig, bev_size: int, bev_res: float) -> None:
         super().__init__()
-        self.depths = torch.arange(tc.depth_min_m, tc.depth_max_m + 1e-6, tc.depth_step_m)
+        self.register_buffer("depths", torch.arange(tc.depth_min_m, tc.depth_max_m + 1e-6, tc.depth_step_m), persistent=False)
         self.D = len(self.depths)
         self.C = tc.image_channels
-        cb = max(16, tc.image_channels // 2)
-        self.backbone = ImageBackbone(cb)
-        self.head = nn.Conv2d(2 * cb, self.D + self.C, 1)
+        if tc.image_backbone == "efficientnet_b0":
+            self.backbone: nn.Module = EfficientNetFPN(tc.fpn_channels)
+        else:
+            self.backbone = SmallCNN(max(16, tc.image_channels // 2))
+        self.head = nn.Conv2d(self.backbone.out_channels, self.D + self.C, 1)
         self.bev_size, self.bev_res = bev_size, bev_res
+        self.chunk_mb = tc.bev_pool_chunk_mb
 
     def forward(self, images: torch.Tensor, K: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
         B, N, _, H, W = images.shape
         f = self.head(self.backbone(normalize_images(images.flatten(0, 1))))
         h, w = f.shape[-2:]
-        depth = f[:, : self.D].softmax(1)
-        feat = f[:, self.D :]
+        # pooled in float32 whatever the autocast: sums of thousands of features per cell
+        depth = f[:, : self.D].float().softmax(1).flatten(2)  # (BN, D, hw)
+        feat = f[:, self.D :].float().flatten(2).transpose(1, 2)  # (BN, hw, C)
         # pixel centres of the feature map in input-image pixels (ROS convention)
-        u = (torch.arange(w, device=f.device) + 0.5) * (W / w) - 0.5
-        v = (torch.arange(h, device=f.device) + 0.5) * (H / h) - 0.5
+        u = (torch.arange(w, device=f.device, dtype=torch.float32) + 0.5) * (W / w) - 0.5
+        v = (torch.arange(h, device=f.device, dtype=torch.float32) + 0.5) * (H / h) - 0.5
         vv, uu = torch.meshgrid(v, u, indexing="ij")
         pix = torch.stack([uu, vv, torch.ones_like(uu)], -1).reshape(-1, 3)  # (hw, 3)
-        Kinv = torch.linalg.inv(K.flatten(0, 1))  # (BN, 3, 3)
-        rays = torch.einsum("bij,pj->bpi", Kinv, pix)  # (BN, hw, 3), z = 1
-        d = self.depths.to(f.device)
-        pts = rays[:, None] * d[None, :, None, None]  # (BN, D, hw, 3)
-        Tf = T.flatten(0, 1)
+        rays = torch.einsum("bij,pj->bpi", _inverse_K(K.flatten(0, 1).float()), pix)  # (BN, hw, 3), z = 1
+        pts = rays[:, None] * self.depths[None, :, None, None]  # (BN, D, hw, 3)
+        Tf = T.flatten(0, 1).float()
         pts = torch.einsum("bij,bdpj->bdpi", Tf[:, :3, :3], pts) + Tf[:, None, None, :3, 3]
-        L = self.bev_size * self.bev_res
-        ix = torch.floor((pts[..., 0] + L / 2) / self.bev_res).long()
-        iy = torch.floor((pts[..., 1] + L / 2) / self.bev_res).long()
-        ok = (ix >= 0) & (ix < self.bev_size) & (iy >= 0) & (iy < self.bev_size)
-        bidx = torch.arange(B, device=f.device).repeat_interleave(N)[:, None, None].expand_as(ix)
-        lin = (bidx * self.bev_size + ix) * self.bev_size + iy
-        lifted = depth.flatten(2)[:, :, :, None] * feat.flatten(2).transpose(1, 2)[:, None]  # (BN, D, hw, C)
-        bev = torch.zeros(B * self.bev_size * self.bev_size, self.C, device=f.device, dtype=f.dtype)
-        bev.index_add_(0, lin[ok], lifted[ok])
-        return bev.view(B, self.bev_size, self.bev_size, self.C).permute(0, 3, 1, 2)
-
-
-class PointPillars(nn.Module):
-    """A PointNet per pillar (max-pooled) scattered to the short BEV grid, then a 2D CNN."""
-
-    def __init__(self, tc: TrainConfig, bev_size: int, bev_res: float) -> None:
-        super().__init__()
-        c = tc.pillar_channels
-        self.pfn = nn.Sequential(nn.Linear(8, c), nn.LayerNorm(c), nn.ReLU())  # xyz, offset to pillar mean, offset to pillar centre
-        self.cnn = nn.Sequential(ResBlock(c, c), ResBlock(c, c))
-        self.bev_size, self.bev_res, self.C = bev_size, bev_res, c
-        self.max_per_pillar = tc.max_points_per_pillar
-
-    def forward(self, points: torch.Tensor, n_points: torch.Tensor) -> torch.Tensor:
-        B, P, _ = points.shape
         S = self.bev_size
         L = S * self.bev_res
-        valid = torch.arange(P, device=points.device)[None] < n_points[:, None]
-        ix = torch.floor((points[..., 0] + L / 2) / self.bev_res).long()
-        iy = torch.floor((points[..., 1] + L / 2) / self.bev_res).long()
-        valid &= (ix >= 0) & (ix < S) & (iy >= 0) & (iy < S)
-        lin = (torch.arange(B, device=points.device)[:, None] * S + ix) * S + iy
-        lin = torch.where(valid, lin, torch.zeros_like(lin))
-        flat, pts = lin[valid], points[valid]
-        # at most max_per_pillar points per pillar: rank points within their pillar
-        order = torch.argsort(flat, stable=True)
-        sf = flat[order]
-        first = torch.ones_like(sf, dtype=torch.bool)
-        first[1:] = sf[1:] != sf[:-1]
-        start = torch.cummax(torch.where(first, torch.arange(len(sf), device=sf.device), torch.zeros_like(sf)), 0).values
-        keep = torch.zeros_like(flat, dtype=torch.bool)
-        keep[order] = (torch.arange(len(sf), device=sf.device) - start) < self.max_per_pillar
-        flat, pts = flat[keep], pts[keep]
-        ncell = B * S * S
-        cnt = torch.zeros(ncell, device=points.device).index_add_(0, flat, torch.ones_like(flat, dtype=points.dtype))
-        mean = torch.zeros(ncell, 3, device=points.device).index_add_(0, flat, pts) / cnt.clamp(min=1)[:, None]
-        cx = ((flat // S) % S).to(points.dtype) * self.bev_res - L / 2 + self.bev_res / 2
-        cy = (flat % S).to(points.dtype) * self.bev_res - L / 2 + self.bev_res / 2
-        feats = torch.cat([pts, pts - mean[flat], (pts[:, 0] - cx)[:, None], (pts[:, 1] - cy)[:, None]], 1)
-        h = self.pfn(feats)
-        bev = torch.zeros(ncell, self.C, device=points.device, dtype=h.dtype)
-        if len(flat):
-            bev = bev.scatter_reduce(0, flat[:, None].expand(-1, self.C), h, "amax", include_self=False)
-        return self.cnn(bev.view(B, S, S, self.C).permute(0, 3, 1, 2))
+        ix = torch.floor((pts[..., 0] + L / 2) / self.bev_res).long()
+        iy = torch.floor((pts[..., 1] + L / 2) / self.bev_res).long()
+        ok = (ix >= 0) & (ix < S) & (iy >= 0) & (iy < S)
+        bidx = torch.arange(B, device=f.device).repeat_interleave(N)[:, None, None]
+        n_cells = B * S * S
+        cell = torch.where(ok, (bidx * S + ix) * S + iy, torch.full_like(ix, n_cells))
+        bev = bev_pool(depth, feat, cell, n_cells, self.chunk_mb)
+        return bev.view(B, S, S, self.C).permute(0, 3, 1, 2)
 
 
 def centre_half(x: torch.Tensor) -> torch.Tensor:
@@ -196,7 +136,7 @@ class MMLite(nn.Module):
         S = tc.short_size
         res = short_length_m / S
         self.lift = LiftSplat(tc, S, res)
-        self.pillars = PointPillars(tc, S, res)
+        self.pillars = PointPillars(tc.pillar_channels, S, res, tc.max_pillars_train, tc.max_pillars_test, tc.max_points_per_pillar)
         cin = tc.image_channels + tc.pillar_channels + 4
         c = tc.decoder_channels
         self.enc1 = ResBlock(cin, c)
@@ -223,9 +163,16 @@ class MMLite(nn.Module):
         return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Return the maps of a collated batch (``ShardDataset``'s keys); the optional key
+        ``point_rand`` (B, P) holds the training's random priorities of the points, which pick
+        the pillars' points (without it, the first points in order)."""
+        return self.decode(batch, self.pillars(batch["points"], batch["n_points"], batch.get("point_rand")))
+
+    def decode(self, batch: dict[str, torch.Tensor], pillars: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Return the maps from the batch's images, grids and the PointPillars features."""
         x = torch.cat([
             self.lift(batch["images"], batch["K"], batch["T_target_cam"]),
-            self.pillars(batch["points"], batch["n_points"]),
+            pillars,
             batch["raw"],
             batch["prior"],
         ], 1)

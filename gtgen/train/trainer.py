@@ -1,27 +1,38 @@
-"""``gtgen train`` / ``gtgen eval``: the M&M-lite trainer and the paper's tables."""
+"""``gtgen train`` / ``gtgen eval``: the M&M-lite trainer and the paper's tables.
+
+``train`` runs on the configured device and precision, in one process or under torchrun
+(DDP, ``gtgen.train.distributed``); the sample order (``gtgen.train.sampler``), the mirror
+draws, the pillar draws and the model's own randomness all depend on the seed and the step
+only, so a resumed run continues exactly where an uninterrupted one would be.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import random
 import time
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from gtgen.config import GtgenConfig, TrainConfig, save_config, stored_config
-from gtgen.errors import ConfigError, TrainError
-from gtgen.runtime.output import atomic_output, lock, signature, write_json
+from gtgen.config import GtgenConfig, TrainConfig, save_config
+from gtgen.errors import ConfigError, GtgenError, TrainError
+from gtgen.runtime.output import lock, remove, write_json
 from gtgen.runtime.progress import track
+from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
+from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
 from gtgen.train.data import ShardDataset, nearest_filled
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 from gtgen.train.model import MMLite
 from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
+from gtgen.train.sampler import StepBatchSampler
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +45,12 @@ EVAL_ROWS = {
     "raw": "raw elevation (min z)",
     "raw_nearest": "raw min z, nearest-filled",
 }
-CKPT_VERSION = 4  # 2: heads correct a smoothed min-z prior; 3: the prior filled everywhere is an input, four-level U-Net;
-# 4: the prior filled on a pyramid, the micro prior at the points grid's resolution, images as bytes
+# the validation metric best.pt is chosen by (lower is better): the mean of the micro and
+# short elevation MAE over all labelled cells of the val split [m]
+BEST_METRIC = "total_mae_m"
+# the random streams of a step (with the seed and the step): the global batch's mirror and
+# pillar draws (the same on every process), and the model's own (stochastic depth), per process
+_MIRROR, _PILLARS, _MODEL = 1, 2, 3
 
 
 def seed_everything(seed: int) -> None:
@@ -44,16 +59,21 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def _step_seed(seed: int, step: int, stream: int, rank: int = 0) -> int:
+    return int(np.random.SeedSequence([seed, step, stream, rank]).generate_state(1)[0])
+
+
 def _collate(items: list[dict]) -> dict:
     return {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
 
-def _to(batch: dict, device: str) -> dict:
-    return {k: v.to(device) for k, v in batch.items()}
+def _to(batch: dict, device: torch.device) -> dict:
+    # non-blocking from pinned memory on CUDA: the copy overlaps the previous step's kernels
+    return {k: v.to(device, non_blocking=device.type == "cuda") for k, v in batch.items()}
 
 
 def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
-    """Return a fresh model; loads ``backbone_weights`` into the image backbone if given.
+    """Return a fresh model; loads ``backbone_weights`` into the EfficientNet-B0 if given.
     Raises ConfigError for grids the model cannot tile: it predicts the micro maps from the
     centre half of the short grid, and its encoder halves the short grid three times."""
     gm, gs = data_cfg.grids.micro, data_cfg.grids.short
@@ -62,17 +82,35 @@ def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
                           f"from the centre half of the short grid, so the micro grid must span {gs.length_m / 2:g} m")
     if tc.short_size < 16 or tc.micro_size < 8:
         raise ConfigError(f"train.short_size {tc.short_size} / micro_size {tc.micro_size}: the model needs at least 16 short and 8 micro cells")
+    if tc.backbone_weights and tc.image_backbone != "efficientnet_b0":
+        raise ConfigError(f"train.backbone_weights loads EfficientNet-B0 weights, but train.image_backbone is {tc.image_backbone!r}; "
+                          "set image_backbone: efficientnet_b0 (the paper preset) or drop backbone_weights")
     model = MMLite(tc, gs.length_m)
     if tc.backbone_weights:
-        p = Path(tc.backbone_weights)
-        if not p.is_file():
-            raise TrainError(f"backbone weights '{p}' do not exist (no weights are downloaded)")
-        state = torch.load(p, map_location="cpu", weights_only=True)
-        missing, unexpected = model.lift.backbone.load_state_dict(state, strict=False)
-        log.info("backbone weights: %d missing, %d unexpected keys", len(missing), len(unexpected))
+        from gtgen.train.backbones import load_backbone_weights
+
+        load_backbone_weights(model.lift.backbone.net, Path(tc.backbone_weights))
     # channels-last weights: oneDNN's convolutions run about 20 % faster on the tiny preset's
     # CPU training step (and it is the layout GPU tensor cores prefer)
     return model.to(memory_format=torch.channels_last)
+
+
+def parameter_counts(model: MMLite) -> dict[str, int]:
+    """Return the model's parameters per block, in the paper's order (Sec. III-D)."""
+    blocks = {
+        "image backbone": ("lift.backbone.net.", *(f"lift.backbone.s{i}." for i in range(1, 5)), "lift.backbone.merge."),
+        "image FPN": ("lift.backbone.lateral.", "lift.backbone.smooth."),
+        "depth + feature head": ("lift.head.",),
+        "PointPillars": ("pillars.",),
+        "decoder, short (U-Net)": ("enc", "up", "short_"),
+        "decoder, micro": ("micro",),
+    }
+    out = dict.fromkeys(blocks, 0)
+    for name, p in model.named_parameters():
+        block = next(b for b, prefixes in blocks.items() if name.startswith(prefixes))
+        out[block] += p.numel()
+    out["total"] = sum(out.values())
+    return {k: v for k, v in out.items() if v or k == "total"}
 
 
 @dataclass
@@ -83,94 +121,316 @@ class TrainResult:
     last_loss: float
     seconds: float
     ckpt: Path
+    rank: int = 0
+    world: int = 1
+    device: str = "cpu"
+    precision: str = "32"
+    samples_per_s: float = float("nan")
+    data_wait_share: float = float("nan")
+    peak_memory_mib: float | None = None
+    best: dict | None = None
+    parameters: dict[str, int] = field(default_factory=dict)
 
 
-def _save(path: Path, payload: dict) -> None:
-    with atomic_output(path) as tmp:
-        torch.save(payload, tmp)
+def _check_steps(max_steps: int | None) -> None:
+    if max_steps is not None and max_steps < 1:
+        raise ConfigError(f"--steps {max_steps}: expected at least 1 step")
 
 
-def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, max_steps: int | None = None) -> TrainResult:
-    """Train M&M-lite on the train split of ``dataset``; checkpoints and metrics go to ``run_dir``
-    (locked while training, so a second run into it stops with a one-line error)."""
+def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, max_steps: int | None = None,
+          device: str | None = None) -> TrainResult:
+    """Train M&M-lite on the train split of ``dataset``; checkpoints, curves and metrics go
+    to ``run_dir`` (locked while training, so a second run into it stops with a one-line
+    error). ``device`` overrides ``train.device``. Under torchrun every process calls this;
+    rank 0 writes. A run that fails before its first checkpoint leaves no folder behind."""
+    _check_steps(max_steps)
+    tc = cfg.train if device is None else cfg.train.model_copy(update={"device": device})
+    cfg = cfg.model_copy(update={"train": tc})
+    procs = D.torchrun_env()
+    dev = D.resolve_device(tc.device, procs)
+    with D.process_group(procs, dev):
+        return _train(dataset, run_dir, cfg, resume, max_steps, procs, dev)
+
+
+@contextlib.contextmanager
+def _run_folder(run_dir: Path, ckpt: Path) -> Iterator[None]:
+    """Hold the run folder's lock while the block runs (making the folder); if the block
+    fails before the run's first checkpoint, remove the folders it made."""
+    made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]
+    if run_dir.exists() and not run_dir.is_dir():
+        raise TrainError(f"run folder '{run_dir}' is a file; choose another --run-dir")
     run_dir.mkdir(parents=True, exist_ok=True)
-    with lock(run_dir), lock(dataset, shared=True):
-        return _train(dataset, run_dir, cfg, resume, max_steps)
+    try:
+        with lock(run_dir):
+            yield
+    except BaseException:
+        if made and not ckpt.exists():
+            remove(run_dir)
+            for p in made[1:]:
+                with contextlib.suppress(OSError):
+                    p.rmdir()  # only if empty
+        raise
 
 
-def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_steps: int | None) -> TrainResult:
-    tc = cfg.train
-    seed_everything(tc.seed)
+def _datasets(dataset: Path, tc: TrainConfig) -> tuple[ShardDataset, ShardDataset | None]:
+    """Return the train split (every sample if it is empty) and the val split (None if empty)."""
     ds = ShardDataset(dataset, tc, split="train")
     if len(ds) == 0:
         ds = ShardDataset(dataset, tc, split=None)
         log.warning("the train split is empty; training on every sample")
-    model = build_model(tc, ds.data_cfg).to(tc.device)
+    val = ShardDataset(dataset, tc, split="val") if tc.val_every else None
+    if val is not None and tc.val_max_samples is not None and len(val) > tc.val_max_samples:
+        val.indices = val.indices[np.linspace(0, len(val) - 1, tc.val_max_samples).round().astype(np.int64)]
+    return ds, (val if val is not None and len(val) else None)
+
+
+def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_steps: int | None,
+           procs: D.Processes, dev: torch.device) -> TrainResult:
+    tc = cfg.train
+    precision = D.resolve_precision(tc.precision, dev)
+    seed_everything(tc.seed)
+    ds, val = _datasets(dataset, tc)
+    model = build_model(tc, ds.data_cfg).to(dev)
+    counts = parameter_counts(model)
+    ckpt_path = run_dir / "ckpt.pt"
+    with contextlib.ExitStack() as stack:
+        err = ""
+        if procs.main:
+            try:
+                stack.enter_context(lock(dataset, shared=True))
+                if resume and not ckpt_path.is_file():
+                    raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
+                stack.enter_context(_run_folder(run_dir, ckpt_path))
+            except GtgenError as e:
+                if procs.world == 1:
+                    raise
+                err = str(e)
+        D.share_error(procs, err)
+        state = load_checkpoint(ckpt_path, tc.preset)[0] if resume else None
+        return _fit(ds, val, model, counts, cfg, run_dir, state, max_steps, procs, dev, precision)
+
+
+def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict[str, int], cfg: GtgenConfig, run_dir: Path,
+         state: dict | None, max_steps: int | None, procs: D.Processes, dev: torch.device, precision: str) -> TrainResult:
+    """The training loop: every process steps, rank 0 logs, validates and checkpoints."""
+    tc = cfg.train
+    if tc.sync_batchnorm and procs.world > 1 and dev.type == "cuda":
+        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=tc.lr, total_steps=tc.steps)
-    ckpt_path = run_dir / "ckpt.pt"
-    step, history = _resume(ckpt_path, tc, model, opt, sched) if resume else (0, [])
-    save_config(cfg, run_dir / "gtgen-config.yaml")
-    g = torch.Generator()
-    g.manual_seed(tc.seed + step)
-    loader = DataLoader(ds, batch_size=tc.batch_size, shuffle=True, num_workers=tc.workers, collate_fn=_collate,
-                        drop_last=len(ds) >= tc.batch_size, generator=g, persistent_workers=tc.workers > 0)
+    scaler = torch.amp.GradScaler(dev.type, enabled=precision == "16-mixed")
+    step, history, best = 0, [], {"step": None, BEST_METRIC: None}
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optim"])
+        sched.load_state_dict(state["sched"])
+        scaler.load_state_dict(state["scaler"])
+        step, history, best = state["step"], state["history"], state["best"]
+    if step >= tc.steps:
+        raise TrainError(f"run '{run_dir}' has trained all {tc.steps} steps of its schedule; nothing to resume")
     end = tc.steps if max_steps is None else min(tc.steps, step + max_steps)
-    t0 = time.perf_counter()
+    net: torch.nn.Module = model
+    if procs.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+    sampler = StepBatchSampler(len(ds), tc.batch_size, tc.seed, step, procs.rank, procs.world)
+    loader = DataLoader(ds, batch_sampler=sampler, num_workers=tc.workers, collate_fn=_collate,
+                        pin_memory=dev.type == "cuda", persistent_workers=tc.workers > 0)
+    curves = None
+    if procs.main:
+        save_config(cfg, run_dir / "gtgen-config.yaml")
+        from gtgen.train.curves import Curves
+
+        curves = Curves(run_dir, step if state is not None else None)
+    count = _global_count(procs)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
     model.train()
-
-    def batches():
-        while True:
-            yield from loader
-
-    it = batches()
+    it = iter(loader)
+    waits, busy, first = [], [], None
 
     def status() -> str:
         return f"loss {history[-1]['total']:.4f}" if history else ""
 
-    for _ in track(range(step, end), "train:", status=status):
-        batch = _to(_augment(next(it), tc, step), tc.device)
-        pred = model(batch)
-        loss, parts = total_loss(pred, batch, tc)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-        opt.step()
-        sched.step()
-        step += 1
-        history.append({"step": step, **parts, "lr": sched.get_last_lr()[0]})
-        if step % tc.ckpt_every == 0 or step == end:
-            _save(ckpt_path, {"written_by": signature(), "version": CKPT_VERSION, "preset": tc.preset, "train": tc.model_dump(mode="json"),
-                              "data_config": ds.data_cfg.model_dump(mode="json"), "model": model.state_dict(),
-                              "optim": opt.state_dict(), "sched": sched.state_dict(), "step": step, "history": history,
-                              "torch_rng": torch.get_rng_state()})
-    secs = time.perf_counter() - t0
-    write_json(run_dir / "metrics.json", {"history": history, "seconds": secs}, indent=1)
-    _link_latest(run_dir)
-    first = history[0]["total"] if history else float("nan")
-    return TrainResult(run_dir, step, first, history[-1]["total"] if history else float("nan"), secs, ckpt_path)
+    t_start = time.perf_counter()
+    try:
+        for _ in track(range(step, end), "train:", status=status):
+            t0 = time.perf_counter()
+            batch = next(it)
+            t1 = time.perf_counter()
+            batch = _to(_augment(batch, tc, step, procs.rank, sampler.used), dev)
+            torch.manual_seed(_step_seed(tc.seed, step, _MODEL, procs.rank))
+            with D.autocast(dev, precision):
+                pred = net(batch)
+            loss, parts = total_loss({k: v.float() for k, v in pred.items()}, batch, tc, count)
+            opt.zero_grad(set_to_none=True)
+            scaler.scale(loss).backward()
+            scaler.unscale_(opt)
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+            scaler.step(opt)
+            scaler.update()
+            sched.step()
+            step += 1
+            parts = _mean_parts(parts, procs, dev)
+            t2 = time.perf_counter()
+            waits.append(t1 - t0)
+            busy.append(t2 - t1)
+            first = parts["total"] if first is None else first
+            row = {**parts, "lr": sched.get_last_lr()[0], "data_s": t1 - t0, "step_s": t2 - t1}
+            history.append({"step": step, **row})
+            if curves is not None:
+                curves.log("train", step, row)
+            if val is not None and (step % tc.val_every == 0 or step == end):
+                if procs.main:
+                    best = _validate(model, val, tc, dev, precision, step, curves, best, run_dir / "best.pt",
+                                     lambda step=step, best=best: _payload(model, opt, sched, scaler, step, history, best, cfg, ds))
+                D.barrier(procs)
+            if procs.main and (step % tc.ckpt_every == 0 or step == end):
+                save_checkpoint(run_dir / "ckpt.pt", _payload(model, opt, sched, scaler, step, history, best, cfg, ds))
+    finally:
+        if curves is not None:
+            curves.close()
+    secs = time.perf_counter() - t_start
+    n = len(busy)
+    peak = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else None
+    res = TrainResult(run_dir, step, first if first is not None else float("nan"), history[-1]["total"] if history else float("nan"),
+                      secs, run_dir / "ckpt.pt", procs.rank, procs.world, str(dev), precision,
+                      samples_per_s=n * tc.batch_size / max(sum(waits) + sum(busy), 1e-9),
+                      data_wait_share=sum(waits) / max(sum(waits) + sum(busy), 1e-9), peak_memory_mib=peak,
+                      best=best if best["step"] is not None else None, parameters=counts)
+    if procs.main:
+        write_json(run_dir / "metrics.json", {
+            "history": history, "seconds": secs, "device": str(dev), "precision": precision, "processes": procs.world,
+            "samples_per_s": res.samples_per_s, "data_wait_share": res.data_wait_share, "peak_memory_mib": peak,
+            "best": res.best, "best_metric": BEST_METRIC, "parameters": counts}, indent=1)
+        _link_latest(run_dir)
+    return res
 
 
-def _augment(batch: dict, tc: TrainConfig, step: int) -> dict:
+def _global_count(procs: D.Processes):
+    """Return the loss's count reduction: the global count over the processes under DDP."""
+    if procs.world == 1:
+        from gtgen.train.loss import _local
+
+        return _local
+
+    def count(n: torch.Tensor) -> torch.Tensor:
+        import torch.distributed as dist
+
+        g = n.detach().clone()
+        dist.all_reduce(g)
+        return g.clamp(min=1) / procs.world
+
+    return count
+
+
+def _mean_parts(parts: dict[str, float], procs: D.Processes, dev: torch.device) -> dict[str, float]:
+    """Return the step's loss parts of the global batch: under DDP each process holds its
+    share of the global mean, so their mean over the processes."""
+    if procs.world == 1:
+        return parts
+    v = D.mean_over(procs, torch.tensor(list(parts.values()), dtype=torch.float64, device=dev if dev.type == "cuda" else "cpu"))
+    return dict(zip(parts, (float(x) for x in v.cpu())))
+
+
+def _payload(model: MMLite, opt, sched, scaler, step: int, history: list, best: dict, cfg: GtgenConfig, ds: ShardDataset) -> dict:
+    tc = cfg.train
+    return {"preset": tc.preset, "train": tc.model_dump(mode="json"), "data_config": ds.data_cfg.model_dump(mode="json"),
+            "model": model.state_dict(), "optim": opt.state_dict(), "sched": sched.state_dict(), "scaler": scaler.state_dict(),
+            "step": step, "history": history, "best": best}
+
+
+def _augment(batch: dict, tc: TrainConfig, step: int, rank: int, global_batch: int) -> dict:
     """Return the training batch with each sample mirrored left-right with probability
-    ``tc.mirror_p``; the draw depends on the seed and the step only (a resumed run draws
-    the same)."""
-    if tc.mirror_p <= 0:
-        return batch
-    g = torch.Generator().manual_seed(tc.seed * 1_000_003 + step)
-    return mirror(batch, torch.rand(len(batch["index"]), generator=g) < tc.mirror_p)
+    ``tc.mirror_p`` and the random priorities of its points (PointPillars' draw). Both are
+    drawn for the whole global batch from the seed and the step, and each process takes its
+    slice: a resumed run, and any number of processes, draw what one uninterrupted process
+    draws."""
+    B = len(batch["index"])
+    sl = slice(rank * B, (rank + 1) * B)
+    out = dict(batch)
+    if tc.mirror_p > 0:
+        g = torch.Generator().manual_seed(_step_seed(tc.seed, step, _MIRROR))
+        out = mirror(out, (torch.rand(global_batch, generator=g) < tc.mirror_p)[sl])
+    g = torch.Generator().manual_seed(_step_seed(tc.seed, step, _PILLARS))
+    out["point_rand"] = torch.rand(global_batch, batch["points"].shape[1], generator=g)[sl]
+    return out
 
 
-def _resume(ckpt_path: Path, tc: TrainConfig, model: MMLite, opt, sched) -> tuple[int, list]:
-    """Load the run's checkpoint into the model, optimizer and schedule; return (step, history)."""
-    if not ckpt_path.is_file():
-        raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
-    state, _, _ = _load_ckpt(ckpt_path, tc)
-    model.load_state_dict(state["model"])
-    opt.load_state_dict(state["optim"])
-    sched.load_state_dict(state["sched"])
-    torch.set_rng_state(state["torch_rng"])
-    return state["step"], state["history"]
+def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.device, precision: str, step: int, curves, best: dict,
+              best_path: Path, payload) -> dict:
+    """Validate on ``val``, log it, and save ``best.pt`` when ``BEST_METRIC`` improves;
+    return the best so far."""
+    model.eval()
+    try:
+        res = _run_eval(model, val, tc, dev, precision, baselines=False)
+    finally:
+        model.train()
+    row = {"loss": res["loss"], BEST_METRIC: res[BEST_METRIC]}
+    for r in ("micro", "short"):
+        for reg, v in res["elevation"][r]["model"].items():
+            row[f"{r}/mae_{reg}_m"] = float("nan") if v["mae_m"] is None else v["mae_m"]
+        f1 = res["risk"][r]["model"]["f1"]
+        row[f"{r}/risk_f1"] = float("nan") if f1 is None else f1
+    if curves is not None:
+        curves.log("val", step, row)
+    metric = row[BEST_METRIC]
+    if np.isfinite(metric) and (best[BEST_METRIC] is None or metric < best[BEST_METRIC]):
+        best = {"step": step, BEST_METRIC: metric}
+        p = payload()
+        p["best"] = best
+        save_checkpoint(best_path, p)
+    return best
+
+
+def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.device, precision: str, baselines: bool = True,
+              progress: str | None = None) -> dict:
+    """Return the paper's tables of ``model`` (in eval mode) on ``ds``, batched on ``dev``;
+    with ``baselines`` also the X-Racer and raw rows; plus the loss."""
+    clip = tc.elevation_clip_m
+    rows = EVAL_ROWS if baselines else {"model": EVAL_ROWS["model"]}
+    acc = {r: {m: ElevationMAE() for m in rows} for r in ("micro", "short")}
+    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in (("model", "xracer") if baselines else ("model",))} for r in ("micro", "short")}
+    cons = Consistency()
+    loss_sum, n = 0.0, 0
+    loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=tc.workers, collate_fn=_collate,
+                        pin_memory=dev.type == "cuda")
+    batches = track(loader, progress) if progress else loader
+    with torch.no_grad():
+        for cpu in batches:
+            batch = _to(cpu, dev)
+            with D.autocast(dev, precision):
+                out = model(batch)
+            out = {k: v.float() for k, v in out.items()}
+            loss, _ = total_loss(out, batch, tc)
+            B = len(cpu["index"])
+            loss_sum += float(loss) * B
+            n += B
+            pred = {k: v.cpu().numpy() for k, v in out.items()}
+            for r in ("micro", "short"):
+                lab = cpu[f"{r}/elevation"].numpy() * clip
+                reg = cpu[f"{r}/region"].numpy()
+                pe = pred[f"{r}/elevation"] * clip
+                acc[r]["model"].add(pe, lab, reg)
+                risk[r]["model"].add(pred[f"{r}/risk"], cpu[f"{r}/risk"].numpy())
+                if not baselines:
+                    continue
+                raw = cpu[f"{r}/raw_elevation"].numpy()
+                xr = cpu[f"{r}/xr_elevation"].numpy()
+                # like for like with the stack and with the raw grid: only where each has a value
+                acc[r]["model_on_xracer_cells"].add(np.where(np.isfinite(xr), pe, np.nan), lab, reg)
+                acc[r]["model_on_raw_cells"].add(np.where(np.isfinite(raw), pe, np.nan), lab, reg)
+                acc[r]["xracer"].add(xr, lab, reg)
+                acc[r]["raw"].add(raw, lab, reg)
+                acc[r]["raw_nearest"].add(np.stack([nearest_filled(x) for x in raw]), lab, reg)
+                risk[r]["xracer"].add(cpu[f"{r}/xr_risk"].numpy(), cpu[f"{r}/risk"].numpy())
+            cons.add(pred["micro/elevation"] * clip, pred["short/elevation"] * clip)
+    elevation = {r: {m: a.table() for m, a in acc[r].items()} for r in acc}
+    totals = [elevation[r]["model"]["total"]["mae_m"] for r in ("micro", "short")]
+    return {"elevation": elevation, "risk": {r: {m: v.table() for m, v in risk[r].items()} for r in risk},
+            "consistency_mae_m": cons.value(), "loss": loss_sum / max(n, 1),
+            BEST_METRIC: float(np.mean(totals)) if all(t is not None for t in totals) else float("nan")}
 
 
 def _link_latest(run_dir: Path) -> None:
@@ -182,31 +442,11 @@ def _link_latest(run_dir: Path) -> None:
         latest.symlink_to(run_dir.name)
 
 
-def _load_ckpt(path: Path, tc: TrainConfig | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:
-    """Return a checkpoint's state with its validated train and data configs."""
-    if not path.is_file():
-        raise TrainError(f"checkpoint '{path}' does not exist")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
-        raise TrainError(f"checkpoint '{path}' cannot be read: {err}".splitlines()[0]) from err
-    if not isinstance(state, dict) or state.get("version") != CKPT_VERSION:
-        raise TrainError(f"'{path}' is not a gtgen checkpoint of version {CKPT_VERSION} (found {state.get('version') if isinstance(state, dict) else type(state).__name__!r}); retrain with this version")
-    if tc is not None and state["preset"] != tc.preset:
-        raise TrainError(f"checkpoint '{path}' is of preset {state['preset']!r}; expected {tc.preset!r}")
-    from pydantic import ValidationError
-
-    try:
-        return state, TrainConfig.model_validate(state["train"]), stored_config(state["data_config"], f"checkpoint '{path}'")
-    except (KeyError, ValidationError) as err:
-        first = err.errors()[0] if isinstance(err, ValidationError) else {"loc": (str(err),), "msg": "missing"}
-        where = ".".join(str(x) for x in first["loc"])
-        raise TrainError(f"checkpoint '{path}' holds a config this gtgen does not accept ({where}: {first['msg']}); retrain with this version") from err
-
-
-def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val") -> dict:
-    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (None: all)."""
-    state, tc, data_cfg = _load_ckpt(ckpt)
+def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None) -> dict:
+    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (None: all),
+    computed on ``device`` (default ``auto``: CUDA when present), batched, with the
+    checkpoint's loader workers and precision."""
+    state, tc, data_cfg = load_checkpoint(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
     ds = ShardDataset(dataset, tc, split=split)
@@ -216,46 +456,25 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
                          "evaluate with --split all, or build more drives")
     if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
         raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
-    model = _trained_model(state, tc, data_cfg)
-    clip = tc.elevation_clip_m
-    acc = {r: {m: ElevationMAE() for m in EVAL_ROWS} for r in ("micro", "short")}
-    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in ("model", "xracer")} for r in ("micro", "short")}
-    cons = Consistency()
-    loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=0, collate_fn=_collate)
-    with torch.no_grad():
-        for batch in track(loader, "eval: batches"):
-            pred = model(batch)
-            for r in ("micro", "short"):
-                lab = batch[f"{r}/elevation"].numpy() * clip
-                reg = batch[f"{r}/region"].numpy()
-                pe = pred[f"{r}/elevation"].numpy() * clip
-                raw = batch[f"{r}/raw_elevation"].numpy()
-                xr = batch[f"{r}/xr_elevation"].numpy()
-                acc[r]["model"].add(pe, lab, reg)
-                # like for like with the stack and with the raw grid: only where each has a value
-                acc[r]["model_on_xracer_cells"].add(np.where(np.isfinite(xr), pe, np.nan), lab, reg)
-                acc[r]["model_on_raw_cells"].add(np.where(np.isfinite(raw), pe, np.nan), lab, reg)
-                acc[r]["xracer"].add(xr, lab, reg)
-                acc[r]["raw"].add(raw, lab, reg)
-                acc[r]["raw_nearest"].add(np.stack([nearest_filled(x) for x in raw]), lab, reg)
-                risk[r]["model"].add(pred[f"{r}/risk"].numpy(), batch[f"{r}/risk"].numpy())
-                risk[r]["xracer"].add(batch[f"{r}/xr_risk"].numpy(), batch[f"{r}/risk"].numpy())
-            cons.add(pred["micro/elevation"].numpy() * clip, pred["short/elevation"].numpy() * clip)
+    dev = D.resolve_device(device or "auto")
+    model = _trained_model(state, tc, data_cfg).to(dev)
+    t0 = time.perf_counter()
+    res = _run_eval(model, ds, tc, dev, D.resolve_precision(tc.precision, dev), progress="eval: batches")
+    secs = time.perf_counter() - t0
     return {
         "split": used, "samples": len(ds), "preset": state["preset"], "step": state["step"],
-        "elevation": {r: {m: a.table() for m, a in acc[r].items()} for r in acc},
-        "risk": {r: {m: v.table() for m, v in risk[r].items()} for r in risk},
-        "consistency_mae_m": cons.value(),
+        "elevation": res["elevation"], "risk": res["risk"], "consistency_mae_m": res["consistency_mae_m"],
         "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
+        "device": str(dev), "seconds_per_sample": secs / len(ds),
     }
 
 
-def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val") -> dict:
+def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val", device: str | None = None) -> dict:
     """Evaluate each checkpoint (one per training seed) and return the first's layout with
     every metric replaced by its mean over the checkpoints, plus ``spread``: the same
     layout with the standard deviations (None where any checkpoint has none), and ``runs``:
     each checkpoint's own result."""
-    runs = [evaluate(dataset, c, None, split) for c in ckpts]
+    runs = [evaluate(dataset, c, None, split, device) for c in ckpts]
     if len({r["preset"] for r in runs}) > 1:
         raise TrainError(f"checkpoints of several presets: {sorted({r['preset'] for r in runs})}; evaluate one preset's seeds together")
     out = _reduce(runs, np.mean)
@@ -278,20 +497,27 @@ def _reduce(results: list, fn):
 
 
 def _trained_model(state: dict, tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
-    """Return the checkpoint's model in eval mode."""
+    """Return the checkpoint's model in eval mode. Raises TrainError (one line) when its
+    weights do not fit the model its config describes."""
     model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as err:  # torch lists every mismatch, one per line after a heading
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+        raise TrainError(f"checkpoint's weights do not fit its model ({lines[-1] if lines else err}); retrain with this version") from err
     return model.eval()
 
 
-def predict_sample(dataset: Path, ckpt: Path, index: int) -> dict[str, np.ndarray]:
-    """Return the model's maps for dataset sample ``index`` (elevation in metres)."""
-    state, tc, data_cfg = _load_ckpt(ckpt)
-    model = _trained_model(state, tc, data_cfg)
+def predict_sample(dataset: Path, ckpt: Path, index: int, device: str | None = None) -> dict[str, np.ndarray]:
+    """Return the model's maps for dataset sample ``index`` (elevation in metres), computed
+    on ``device`` (default ``auto``)."""
+    state, tc, data_cfg = load_checkpoint(ckpt)
+    dev = D.resolve_device(device or "auto")
+    model = _trained_model(state, tc, data_cfg).to(dev)
     ds = ShardDataset(dataset, tc)
     pos = np.nonzero(ds.indices == index)[0]
     if not len(pos):
         raise TrainError(f"sample {index} is not in the dataset (0..{ds.store.n_samples - 1})")
-    with torch.no_grad():
-        pred = model(_collate([ds[int(pos[0])]]))
-    return {k: v[0].numpy() * (tc.elevation_clip_m if k.endswith("elevation") else 1.0) for k, v in pred.items()}
+    with torch.no_grad(), D.autocast(dev, D.resolve_precision(tc.precision, dev)):
+        pred = model(_to(_collate([ds[int(pos[0])]]), dev))
+    return {k: v[0].float().cpu().numpy() * (tc.elevation_clip_m if k.endswith("elevation") else 1.0) for k, v in pred.items()}
