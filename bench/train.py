@@ -136,7 +136,7 @@ FILL = """
 import sys, time, numpy as np
 from pathlib import Path
 from gtgen.storage.dataset import DatasetStore
-from gtgen.train.data import filled, smoothed_min_z
+from gtgen.grids import filled, smoothed_min_z
 info = DatasetStore(Path(sys.argv[1]))
 g = info.group
 raw = g["inputs/raw_elevation_m"]

@@ -114,26 +114,6 @@ def apply(T: NDArray, pts: NDArray) -> F64:
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
-def cell_centers(size: int, resolution_m: float) -> F64:
-    """Return the (size,) cell-centre coordinates [m] of a vehicle-centric grid axis."""
-    return -0.5 * size * resolution_m + (np.arange(size) + 0.5) * resolution_m
-
-
-def grid_xy(size: int, resolution_m: float) -> tuple[F64, F64]:
-    """Return x and y [m] of every cell (size, size), axis 0 along x, axis 1 along y."""
-    c = cell_centers(size, resolution_m)
-    return np.meshgrid(c, c, indexing="ij")
-
-
-def xy_to_index(x: NDArray, y: NDArray, size: int, resolution_m: float) -> tuple[NDArray, NDArray]:
-    """Return the integer cell indices (i, j) of points (x, y) [m]; out-of-grid gives -1."""
-    half = 0.5 * size * resolution_m
-    i = np.floor((np.asarray(x) + half) / resolution_m).astype(np.int64)
-    j = np.floor((np.asarray(y) + half) / resolution_m).astype(np.int64)
-    bad = (i < 0) | (i >= size) | (j < 0) | (j >= size)
-    return np.where(bad, -1, i), np.where(bad, -1, j)
-
-
 def rescale_K(K: NDArray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> F64:
     """Return intrinsics K for an image resized from src to dst size (width, height;
     pixel centres at integers, as in ROS)."""

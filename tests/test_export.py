@@ -105,7 +105,7 @@ def test_geotiff_per_sample_rasters_put_each_cell_at_its_placement(dataset, tmp_
     import zarr
 
     from gtgen.export import export_geotiff
-    from gtgen.geometry import grid_xy
+    from gtgen.grids import grid_xy
 
     res = export_geotiff(dataset, tmp_path / "s", samples=[3])
     assert res.samples == 1
@@ -202,7 +202,7 @@ def test_open_dataset_gives_schema_splits_and_xarray_in_metres(dataset, cfg):
     import zarr
 
     import gtgen
-    from gtgen.geometry import cell_centers
+    from gtgen.grids import cell_centers
 
     ds = gtgen.open_dataset(dataset)
     assert len(ds) > 0 and sum(len(v) for v in ds.splits.values()) == len(ds)

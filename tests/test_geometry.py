@@ -6,7 +6,6 @@ from hypothesis import strategies as st
 
 from gtgen.geometry import (
     apply,
-    cell_centers,
     invert,
     make_transform,
     matrix_to_quat,
@@ -14,9 +13,9 @@ from gtgen.geometry import (
     quat_to_yaw,
     rpy_to_quat,
     slerp,
-    xy_to_index,
     yaw_transform,
 )
+from gtgen.grids import cell_centers, xy_to_index
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
 

@@ -71,3 +71,37 @@ def test_one_process_pool_and_no_fork():
 def test_one_bilinear_sampler():
     hits = [str(p.relative_to(ROOT)) for p in CODE if re.search(r"map_coordinates|def _?bilinear", p.read_text())]
     assert hits == ["gtgen/grids.py"], hits
+
+
+def test_the_torch_cell_index_is_the_numpy_one():
+    import numpy as np
+    import torch
+
+    from gtgen.grids import xy_to_index
+    from gtgen.train.pillars import cell_index
+
+    rng = np.random.default_rng(0)
+    size, res = 250, 0.8
+    x = rng.uniform(-110, 110, 5000)
+    y = rng.uniform(-110, 110, 5000)
+    x[:5] = [-100.0, 99.2, 100.0, -100.0 + 1e-9, 99.99999]  # cell borders and the grid's edges
+    want = xy_to_index(x, y, size, res)
+    got = cell_index(torch.from_numpy(x), torch.from_numpy(y), size, res)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a.numpy(), b)
+
+
+def test_the_terrain_samples_its_tiles_with_the_one_bilinear_rule():
+    import numpy as np
+
+    from gtgen.config import SynthConfig
+    from gtgen.grids import bilinear
+    from gtgen.synth.terrain import TILE_RES_M, Obstacles, Terrain
+
+    none = np.zeros(0)
+    t = Terrain(SynthConfig(seed=3), Obstacles(np.zeros((0, 2)), none, none, np.zeros((0, 2)), none, none, none))
+    n = 64
+    g = t.eval_grid(-0.5 * TILE_RES_M, -0.5 * TILE_RES_M, TILE_RES_M, n, n)["ground"]  # cell (i, j) at (i, j) * res
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0, (n - 1) * TILE_RES_M, (2, 500))
+    np.testing.assert_allclose(t.sample(u, v)[0], bilinear(g, u / TILE_RES_M, v / TILE_RES_M), atol=1e-4)

@@ -151,7 +151,7 @@ def test_bad_datasets(dataset, tmp_path):
 
 
 def test_filled_prior_and_nearest_baseline_by_hand():
-    from gtgen.train.data import filled, nearest_filled, point_distance
+    from gtgen.grids import filled, nearest_filled, point_distance
 
     g = np.full((9, 9), np.nan)
     g[4, 0:3] = [1.0, 2.0, 3.0]
@@ -169,7 +169,7 @@ def test_filled_prior_and_nearest_baseline_by_hand():
 def test_pyramid_fill_follows_the_full_resolution_fill():
     from scipy.ndimage import gaussian_filter
 
-    from gtgen.train.data import filled
+    from gtgen.grids import filled
 
     rng = np.random.default_rng(3)
     for n in (40, 125, 250):
@@ -354,7 +354,8 @@ def test_mirror_keeps_cameras_points_and_grids_consistent(dataset):
 
 
 def test_micro_prior_finer_than_the_points_grid_follows_the_fine_oracle(dataset):
-    from gtgen.train.data import ShardDataset, nearest_index
+    from gtgen.grids import nearest_index
+    from gtgen.train.data import ShardDataset
 
     cfg = load_config(None, SMALL_TRAIN)
     ds = ShardDataset(dataset, cfg.train)

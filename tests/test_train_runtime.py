@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import run_cli
+from conftest import reseal, run_cli
 from gtgen.config import load_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from test_train import SMALL_TRAIN
@@ -39,6 +39,7 @@ def with_val(dataset, tmp_path_factory) -> Path:
     split = g["meta/split"][:]
     split[::4] = 1
     g["meta/split"][:] = split
+    reseal(out)
     return out
 
 

@@ -93,7 +93,7 @@ def viz(
     ```
     gtgen viz --sample 12 -o s12.png
     gtgen viz datasets/paso.zarr -n 0 -o first.png
-    gtgen viz --sample 12 --ckpt runs/latest/best.pt --device cuda -o s12_pred.png
+    gtgen viz -n 12 --ckpt runs/latest/best.pt -o pred12.png
     ```
     """
     from gtgen.viz import render_sample

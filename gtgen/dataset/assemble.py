@@ -20,12 +20,12 @@ from gtgen.dataset.split import split_of
 from gtgen.dem.place import dem_patch
 from gtgen.dem.tiles import DemRef, DemSource
 from gtgen.geometry import (
-    grid_xy,
     make_transform,
     quat_to_matrix,
     quat_to_yaw,
     yaw_transform,
 )
+from gtgen.grids import grid_xy, raw_min_z
 from gtgen.storage.dataset import DatasetSample, write_block
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedSample, FusedStore
@@ -71,18 +71,6 @@ def _dem(ctx: Context) -> DemSource:
         _OPEN.clear()
         _OPEN[ctx.out_path] = ctx.dem.open()
     return _OPEN[ctx.out_path]
-
-
-def raw_min_z(points: NDArray, size: int, res: float) -> NDArray[np.float32]:
-    """Return the lowest point per cell of a (size, size) target grid of ``res`` (NaN where none)."""
-    out = np.full(size * size, np.inf, np.float32)
-    half = 0.5 * size * res
-    i = np.floor((points[:, 0] + half) / res).astype(np.int64)
-    j = np.floor((points[:, 1] + half) / res).astype(np.int64)
-    ok = (i >= 0) & (i < size) & (j >= 0) & (j < size)
-    np.minimum.at(out, i[ok] * size + j[ok], points[ok, 2])
-    out[np.isinf(out)] = np.nan
-    return out.reshape(size, size)
 
 
 def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.float32]]:

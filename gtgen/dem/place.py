@@ -21,7 +21,8 @@ from gtgen.dem.fit import PlanarFit, gnss_fit
 from gtgen.dem.icp import IcpResult, icp_4dof
 from gtgen.dem.tiles import DemSource, sample_bilinear
 from gtgen.errors import DemError
-from gtgen.geometry import grid_xy, invert, yaw_transform
+from gtgen.geometry import invert, yaw_transform
+from gtgen.grids import grid_xy
 from gtgen.storage.drive import DriveSamples, DriveStore, Fixes
 from gtgen.storage.fused import FusedStore
 

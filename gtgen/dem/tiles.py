@@ -362,11 +362,10 @@ class DemMosaic:
 
 def sample_bilinear(grid: NDArray[np.float32], origin: tuple[float, float, float], E: NDArray, N: NDArray) -> NDArray[np.float32]:
     """Return ``grid`` (rows south from y0, columns east from x0, pixel-is-area) bilinearly
-    interpolated at (E, N); NaN outside or next to a NaN."""
-    from scipy.ndimage import map_coordinates
+    interpolated at (E, N) of the working CRS; NaN outside or next to a NaN."""
+    from gtgen.grids import bilinear
 
     x0, y0, res = origin
     col = (np.asarray(E) - x0) / res - 0.5
     row = (y0 - np.asarray(N)) / res - 0.5
-    out = map_coordinates(grid, [row.ravel(), col.ravel()], order=1, cval=np.nan, prefilter=False)
-    return out.reshape(np.shape(E)).astype(np.float32)
+    return bilinear(grid, row, col).astype(np.float32)

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
-from gtgen.geometry import xy_to_index
+from gtgen.grids import xy_to_index
 from gtgen.runtime.output import atomic_output, check_replace, lock, signature
 from gtgen.runtime.progress import track
 from gtgen.storage.dataset import DatasetStore

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.grids import grid_xy
+
 ALIGN_TOL = 1e-6
 
 
@@ -77,8 +79,7 @@ def target_lattice_index(size: int, grid_res: float, lattice_res: float, pos: ND
     The target grid is vehicle-centric and gravity-aligned: centre at ``pos`` (odom),
     x along ``yaw``; axis 0 is x, index 0 at -L/2 (data_schema.md, 'Grids').
     """
-    cc = -0.5 * size * grid_res + (np.arange(size) + 0.5) * grid_res
-    X, Y = np.meshgrid(cc, cc, indexing="ij")
+    X, Y = grid_xy(size, grid_res)
     c, s = np.cos(yaw), np.sin(yaw)
     px = pos[0] + c * X - s * Y
     py = pos[1] + s * X + c * Y

@@ -7,7 +7,8 @@ import numpy as np
 
 from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig
-from gtgen.geometry import grid_xy, yaw_transform
+from gtgen.geometry import yaw_transform
+from gtgen.grids import grid_xy
 from gtgen.report.stats import REGIONS, quantiles
 from gtgen.storage.dataset import DatasetStore
 

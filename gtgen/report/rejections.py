@@ -21,7 +21,8 @@ import numpy as np
 
 from gtgen import codes
 from gtgen.config import GtgenConfig
-from gtgen.geometry import grid_xy, yaw_transform
+from gtgen.geometry import yaw_transform
+from gtgen.grids import grid_xy
 from gtgen.report.stats import quantiles
 from gtgen.storage.dataset import DatasetStore
 

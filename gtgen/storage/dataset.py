@@ -274,7 +274,7 @@ class ShardWriter(StoreWriter):
     def _coordinates(self, attrs: DatasetAttrs) -> None:
         """Write the dimension coordinates (``schema.COORDS``): cell centres of each grid,
         and the sample times."""
-        from gtgen.geometry import cell_centers
+        from gtgen.grids import cell_centers
 
         grids = stored_config(attrs.config, "the dataset being written").grids
         t = self.arrays["meta/t_ns"][:] if self.n else np.zeros(0, np.int64)

@@ -349,11 +349,10 @@ class Terrain:
 
 def _cells(u: NDArray, v: NDArray) -> tuple[tuple[int, ...], NDArray, NDArray, NDArray, NDArray]:
     """Return (shape, iu, iv, au, av): the 0.1 m cell of each point (flattened) and its
-    bilinear weights along u and v."""
+    bilinear weights along u and v (``gtgen.grids.cell_weights``, the one rule)."""
+    from gtgen.grids import cell_weights
+
     u = np.asarray(u, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
-    fu = u.ravel() / TILE_RES_M
-    fv = v.ravel() / TILE_RES_M
-    iu = np.floor(fu)
-    iv = np.floor(fv)
-    return u.shape, iu.astype(np.int64), iv.astype(np.int64), (fu - iu).astype(np.float32), (fv - iv).astype(np.float32)
+    iu, au = cell_weights(u.ravel() / TILE_RES_M)
+    iv, av = cell_weights(np.asarray(v, dtype=np.float64).ravel() / TILE_RES_M)
+    return u.shape, iu, iv, au, av

@@ -18,13 +18,8 @@ from gtgen import codes
 from gtgen.config import TrainConfig
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
+from gtgen.grids import bilinear, filled, nearest_index, point_distance, smoothed_min_z
 from gtgen.storage.dataset import DatasetStore
-
-
-def nearest_index(src_size: int, dst_size: int) -> NDArray[np.int64]:
-    """Return, per destination cell, the source cell containing its centre (same extent)."""
-    centres = (np.arange(dst_size) + 0.5) * (src_size / dst_size)
-    return np.clip(np.floor(centres).astype(np.int64), 0, src_size - 1)
 
 
 def centre_half_coords(n_src: int, n_dst: int) -> NDArray[np.float64]:
@@ -46,120 +41,18 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
     return raw[np.ix_(ix, ix)]
 
 
-def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
-    """Return the min-z grid averaged over its valid cells in a ``size`` x ``size`` window,
-    at the valid cells only (normalized convolution; NaN elsewhere).
-
-    Voxel-map minima sit on a 0.4 m voxel lattice; averaging neighbours removes most of
-    that quantisation on smooth ground (on the demo val split: micro obs F MAE 0.137 ->
-    0.102 m, unobs 0.096 -> 0.049 m).
-    """
-    from scipy.ndimage import uniform_filter
-
-    ok = np.isfinite(raw)
-    m = ok.astype(np.float64)
-    num = uniform_filter(np.where(ok, raw, 0.0).astype(np.float64), size, mode="constant")
-    den = uniform_filter(m, size, mode="constant")
-    return np.where(ok & (den > 0), num / np.maximum(den, 1e-12), np.nan).astype(np.float32)
 
 
-def _pool2(a: NDArray) -> NDArray[np.float64]:
-    """Return the 2 x 2 block means of a stack (m, n, n); an odd edge is padded with zeros
-    (zero weight)."""
-    m, n, _ = a.shape
-    if n % 2:
-        a = np.pad(a, ((0, 0), (0, 1), (0, 1)))
-    k = a.shape[1] // 2
-    return a.reshape(m, k, 2, k, 2).mean(axis=(2, 4))
 
 
-def _bilinear_at(a: NDArray, x: NDArray) -> NDArray[np.float64]:
-    """Return the grids ``a`` (..., c, c) sampled bilinearly at the source coordinates ``x``
-    (cell centres at 0..c-1) along both of the last two axes; beyond the edge cells, their
-    values."""
-    c = a.shape[-1]
-    x = np.clip(x, 0, c - 1)
-    i0 = np.minimum(np.floor(x).astype(np.int64), max(c - 2, 0))
-    i1 = np.minimum(i0 + 1, c - 1)
-    w = x - i0
-    rows = a[..., i0, :] * (1 - w)[:, None] + a[..., i1, :] * w[:, None]
-    return rows[..., i0] * (1 - w) + rows[..., i1] * w
 
 
-def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
-    """Return ``grid`` with its NaN cells filled from the valid ones, coarse to fine: each
-    empty cell takes the Gaussian-weighted mean of the valid cells at the finest of the
-    scales sigma = 1, 2, 4, ... cells that reaches some (normalized convolution, weight
-    above 1e-3); valid cells keep their value, a grid without any valid cell is 0. Beyond
-    the voxel points it is the smooth continuation of the ground around them, which the
-    heads correct.
-
-    Scales above ``max_sigma_cells`` are computed on a pyramid of 2 x 2 block means (sigma
-    at most ``max_sigma_cells`` cells of the level) and interpolated back bilinearly: every
-    scale costs at most one filter of that width, so the whole fill is about 1.3 of them
-    (250 x 250: 5x faster than full-resolution filters through FFTs). The full-resolution
-    fill is the tests' oracle; the two differ only along the seams where a cell's scale
-    changes (mean 2 cm on the demo's grids).
-
-    Measured alternatives, 3 seeds of the tiny preset on the demo (short obs F / unobs MAE
-    1.293 / 1.594 m, micro 0.428 / 0.795 m with the full-resolution fill): a pull-push fill
-    (2 x 2 block sums up to one cell, bilinear blends down; a prior as close to the labels)
-    trained a worse model, short 1.421 / 1.714 m; taking each cell from a coarser scale
-    (weight above 0.05 instead of 1e-3: a smoother prior, closer to the labels by itself)
-    gave short 1.290 / 1.751 m and micro 0.404 / 0.990 m, worse unobserved."""
-    from scipy.ndimage import gaussian_filter
-
-    ok = np.isfinite(grid)
-    if ok.all():
-        return grid.astype(np.float32)
-    if not ok.any():
-        return np.zeros(grid.shape, np.float32)
-    n = grid.shape[0]
-    level_wv = np.stack([ok.astype(np.float64), np.where(ok, grid, 0.0).astype(np.float64)])
-    out = np.full(grid.shape, np.nan)
-    sigma, level = 1.0, 0
-    while np.isnan(out).any() and sigma <= 2 * max(grid.shape):
-        while sigma / 2**level > max_sigma_cells and level_wv.shape[1] > 4:
-            level_wv = _pool2(level_wv)
-            level += 1
-        den, num = smooth = np.stack([gaussian_filter(x, sigma / 2**level, mode="constant", truncate=3.0) for x in level_wv])
-        if level:  # the level's cells at the fine cell centres
-            den, num = _bilinear_at(smooth, (np.arange(n) + 0.5) / 2**level - 0.5)
-        reach = np.isnan(out) & (den > 1e-3)
-        out[reach] = num[reach] / den[reach]
-        sigma *= 2
-    out[np.isnan(out)] = float(grid[ok].mean())
-    out[ok] = grid[ok]
-    return out.astype(np.float32)
 
 
-def resample_bilinear(grid: NDArray, size: int) -> NDArray[np.float32]:
-    """Return the square grids (..., n, n) resampled to (..., size, size) over the same
-    extent, bilinear between cell centres (edge cells extended)."""
-    return _bilinear_at(grid, (np.arange(size) + 0.5) * (grid.shape[-1] / size) - 0.5).astype(np.float32)
 
 
-def nearest_filled(grid: NDArray) -> NDArray[np.float32]:
-    """Return ``grid`` with every NaN cell set to the value of its nearest valid cell
-    (the eval's trivial full-coverage baseline); all NaN stays NaN."""
-    from scipy.ndimage import distance_transform_edt
-
-    ok = np.isfinite(grid)
-    if ok.all() or not ok.any():
-        return grid.astype(np.float32)
-    _, (i, j) = distance_transform_edt(~ok, return_indices=True)
-    return grid[i, j].astype(np.float32)
 
 
-def point_distance(grid: NDArray) -> NDArray[np.float32]:
-    """Return, per cell, the distance to the nearest valid cell of ``grid`` over the grid's
-    size (0 on valid cells, 1 everywhere when none is valid)."""
-    from scipy.ndimage import distance_transform_edt
-
-    ok = np.isfinite(grid)
-    if not ok.any():
-        return np.ones(grid.shape, np.float32)
-    return (distance_transform_edt(~ok) / grid.shape[0]).astype(np.float32)
 
 
 class ShardDataset(Dataset):
@@ -240,7 +133,8 @@ class ShardDataset(Dataset):
         n_s = raw_s.shape[0]
         lo, hi = centre_half_slab(n_s)
         prior = self._prior(raw_s[lo:hi, lo:hi], self._prior_win["centre"])
-        return _bilinear_at(prior, centre_half_coords(n_s, self.tc.micro_size) - lo).astype(np.float32)
+        x = centre_half_coords(n_s, self.tc.micro_size) - lo
+        return bilinear(prior, x[:, None], x[None, :], outside="edge").astype(np.float32)
 
     def __len__(self) -> int:
         return len(self.indices)

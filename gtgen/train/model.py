@@ -13,7 +13,7 @@ from torch import nn
 from gtgen.config import TrainConfig
 from gtgen.train.backbones import EfficientNetFPN, ResBlock, SmallCNN, _block
 from gtgen.train.bev_pool import bev_pool
-from gtgen.train.pillars import PointPillars
+from gtgen.train.pillars import PointPillars, cell_index
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 IMAGE_STD = (0.229, 0.224, 0.225)
@@ -71,10 +71,8 @@ class LiftSplat(nn.Module):
         Tf = T.flatten(0, 1).float()
         pts = torch.einsum("bij,bdpj->bdpi", Tf[:, :3, :3], pts) + Tf[:, None, None, :3, 3]
         S = self.bev_size
-        L = S * self.bev_res
-        ix = torch.floor((pts[..., 0] + L / 2) / self.bev_res).long()
-        iy = torch.floor((pts[..., 1] + L / 2) / self.bev_res).long()
-        ok = (ix >= 0) & (ix < S) & (iy >= 0) & (iy < S)
+        ix, iy = cell_index(pts[..., 0], pts[..., 1], S, self.bev_res)
+        ok = ix >= 0
         bidx = torch.arange(B, device=f.device).repeat_interleave(N)[:, None, None]
         n_cells = B * S * S
         cell = torch.where(ok, (bidx * S + ix) * S + iy, torch.full_like(ix, n_cells))

@@ -19,6 +19,16 @@ from gtgen.train.backbones import ResBlock
 from gtgen.train.bev_pool import add_rows
 
 
+def cell_index(x: torch.Tensor, y: torch.Tensor, size: int, res: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return the integer cell indices (i, j) of points (x, y) [m] on a vehicle-centric grid
+    of ``size`` cells of ``res``; -1 out of the grid. The torch twin of
+    ``gtgen.grids.xy_to_index`` (a test holds the two equal)."""
+    half = size * res / 2
+    i = torch.floor((x + half) / res).long()
+    j = torch.floor((y + half) / res).long()
+    bad = (i < 0) | (i >= size) | (j < 0) | (j >= size)
+    return torch.where(bad, -1, i), torch.where(bad, -1, j)
+
 def pillarize(points: torch.Tensor, n_points: torch.Tensor, size: int, res: float, max_pillars: int, per_pillar: int,
               priority: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Return the kept points (n, 3) of the padded batch ``points`` (B, P, 3; the first
@@ -36,10 +46,8 @@ def pillarize(points: torch.Tensor, n_points: torch.Tensor, size: int, res: floa
         order = torch.argsort(priority.to(dev), dim=1)
         points = torch.gather(points, 1, order[..., None].expand(-1, -1, 3))
         valid = torch.gather(valid, 1, order)
-    L = size * res
-    ix = torch.floor((points[..., 0] + L / 2) / res).long()
-    iy = torch.floor((points[..., 1] + L / 2) / res).long()
-    valid &= (ix >= 0) & (ix < size) & (iy >= 0) & (iy < size)
+    ix, iy = cell_index(points[..., 0], points[..., 1], size, res)
+    valid &= ix >= 0
     b, p = valid.nonzero(as_tuple=True)
     lin = (b * size + ix[b, p]) * size + iy[b, p]
     # sorted by pillar, then priority: a pillar's points are one run, its best first

@@ -22,12 +22,13 @@ from torch.utils.data import DataLoader
 
 from gtgen.config import GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
+from gtgen.grids import nearest_filled
 from gtgen.runtime.output import lock, remove, write_json
 from gtgen.runtime.progress import track
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
 from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
-from gtgen.train.data import ShardDataset, nearest_filled
+from gtgen.train.data import ShardDataset
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 from gtgen.train.model import MMLite

@@ -1,0 +1,175 @@
+"""Grid rules, each written once: where a vehicle-centric grid's cells lie, which cell a
+point falls in, bilinear sampling and resampling, and the gap fills and distances the
+model's inputs and the eval's baselines are made of.
+
+Conventions (data_schema.md, 'Grids'): axis 0 is x, axis 1 is y, index 0 at the most
+negative coordinate; cell (i, j) has its centre at (-L/2 + (i + 0.5) r, -L/2 + (j + 0.5) r).
+Fractional cell coordinates put cell i's centre at i. The torch twin of ``xy_to_index``
+(``gtgen.train.pillars.cell_index``) is tested against it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+def cell_centers(size: int, resolution_m: float) -> F64:
+    """Return the (size,) cell-centre coordinates [m] of a vehicle-centric grid axis."""
+    return -0.5 * size * resolution_m + (np.arange(size) + 0.5) * resolution_m
+
+
+def grid_xy(size: int, resolution_m: float) -> tuple[F64, F64]:
+    """Return x and y [m] of every cell (size, size), axis 0 along x, axis 1 along y."""
+    c = cell_centers(size, resolution_m)
+    return np.meshgrid(c, c, indexing="ij")
+
+
+def xy_to_index(x: NDArray, y: NDArray, size: int, resolution_m: float) -> tuple[NDArray, NDArray]:
+    """Return the integer cell indices (i, j) of points (x, y) [m]; out-of-grid gives -1."""
+    half = 0.5 * size * resolution_m
+    i = np.floor((np.asarray(x) + half) / resolution_m).astype(np.int64)
+    j = np.floor((np.asarray(y) + half) / resolution_m).astype(np.int64)
+    bad = (i < 0) | (i >= size) | (j < 0) | (j >= size)
+    return np.where(bad, -1, i), np.where(bad, -1, j)
+
+
+def nearest_index(src_size: int, dst_size: int) -> NDArray[np.int64]:
+    """Return, per destination cell, the source cell containing its centre (same extent)."""
+    centres = (np.arange(dst_size) + 0.5) * (src_size / dst_size)
+    return np.clip(np.floor(centres).astype(np.int64), 0, src_size - 1)
+
+
+def cell_weights(coord: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Return the lower cell index and the bilinear weight of the upper one, per fractional
+    cell coordinate (centres at integers), for samplers that gather the four neighbours
+    themselves (the synthetic terrain's tile pool)."""
+    f = np.asarray(coord, np.float64)
+    i = np.floor(f)
+    return i.astype(np.int64), (f - i).astype(np.float32)
+
+
+def bilinear(grids: NDArray, rows: NDArray, cols: NDArray, outside: str = "nan") -> NDArray[np.float64]:
+    """Return the grids (..., n, m) sampled bilinearly at fractional cell coordinates
+    (``rows`` along the second-to-last axis, ``cols`` along the last; centres at integers),
+    one value per coordinate pair of the broadcast shape. ``outside="nan"``: NaN beyond the
+    outer cell centres and next to a NaN cell; ``"edge"``: the edge cells extended. The one
+    bilinear sampler of gtgen (DEM heights, the prior's pyramid, grid resampling)."""
+    from scipy.ndimage import map_coordinates
+
+    r, c = np.broadcast_arrays(np.asarray(rows, np.float64), np.asarray(cols, np.float64))
+    coords = [r.ravel(), c.ravel()]
+    mode, cval = ("constant", np.nan) if outside == "nan" else ("nearest", 0.0)
+    if outside not in ("nan", "edge"):
+        raise ValueError(f"outside={outside!r}; expected 'nan' or 'edge'")
+    g = np.asarray(grids)
+    flat = g.reshape(-1, *g.shape[-2:])
+    out = np.stack([map_coordinates(x, coords, order=1, mode=mode, cval=cval, prefilter=False) for x in flat])
+    return out.reshape(*g.shape[:-2], *r.shape)
+
+
+def resample_bilinear(grids: NDArray, size: int) -> NDArray[np.float32]:
+    """Return the square grids (..., n, n) resampled to (..., size, size) over the same
+    extent, bilinear between cell centres (edge cells extended)."""
+    x = (np.arange(size) + 0.5) * (grids.shape[-1] / size) - 0.5
+    return bilinear(grids, x[:, None], x[None, :], outside="edge").astype(np.float32)
+
+
+def raw_min_z(points: NDArray, size: int, res: float) -> NDArray[np.float32]:
+    """Return the lowest point per cell of a (size, size) target grid of ``res`` (NaN where none)."""
+    out = np.full(size * size, np.inf, np.float32)
+    i, j = xy_to_index(points[:, 0], points[:, 1], size, res)
+    ok = i >= 0
+    np.minimum.at(out, i[ok] * size + j[ok], points[ok, 2])
+    out[np.isinf(out)] = np.nan
+    return out.reshape(size, size)
+
+
+def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
+    """Return the min-z grid averaged over its valid cells in a ``size`` x ``size`` window,
+    at the valid cells only (normalized convolution; NaN elsewhere). Voxel-map minima sit on
+    a 0.4 m voxel lattice; averaging neighbours removes most of that quantisation on smooth
+    ground (README, "What the model needs")."""
+    from scipy.ndimage import uniform_filter
+
+    ok = np.isfinite(raw)
+    m = ok.astype(np.float64)
+    num = uniform_filter(np.where(ok, raw, 0.0).astype(np.float64), size, mode="constant")
+    den = uniform_filter(m, size, mode="constant")
+    return np.where(ok & (den > 0), num / np.maximum(den, 1e-12), np.nan).astype(np.float32)
+
+
+def _pool2(a: NDArray) -> NDArray[np.float64]:
+    """Return the 2 x 2 block means of a stack (m, n, n); an odd edge is padded with zeros
+    (zero weight)."""
+    m, n, _ = a.shape
+    if n % 2:
+        a = np.pad(a, ((0, 0), (0, 1), (0, 1)))
+    k = a.shape[1] // 2
+    return a.reshape(m, k, 2, k, 2).mean(axis=(2, 4))
+
+
+def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
+    """Return ``grid`` with its NaN cells filled from the valid ones, coarse to fine: each
+    empty cell takes the Gaussian-weighted mean of the valid cells at the finest of the
+    scales sigma = 1, 2, 4, ... cells that reaches some (normalized convolution, weight
+    above 1e-3); valid cells keep their value, a grid without any valid cell is 0. Beyond
+    the voxel points it is the smooth continuation of the ground around them, which the
+    heads correct.
+
+    Scales above ``max_sigma_cells`` are computed on a pyramid of 2 x 2 block means (sigma
+    at most ``max_sigma_cells`` cells of the level) and interpolated back bilinearly: every
+    scale costs at most one filter of that width. The full-resolution fill
+    (``max_sigma_cells=inf``) is the tests' oracle; the two differ only along the seams
+    where a cell's scale changes. Why this fill and not another: README, "What the model
+    needs"."""
+    from scipy.ndimage import gaussian_filter
+
+    ok = np.isfinite(grid)
+    if ok.all():
+        return grid.astype(np.float32)
+    if not ok.any():
+        return np.zeros(grid.shape, np.float32)
+    n = grid.shape[0]
+    level_wv = np.stack([ok.astype(np.float64), np.where(ok, grid, 0.0).astype(np.float64)])
+    out = np.full(grid.shape, np.nan)
+    sigma, level = 1.0, 0
+    while np.isnan(out).any() and sigma <= 2 * max(grid.shape):
+        while sigma / 2**level > max_sigma_cells and level_wv.shape[1] > 4:
+            level_wv = _pool2(level_wv)
+            level += 1
+        den, num = smooth = np.stack([gaussian_filter(x, sigma / 2**level, mode="constant", truncate=3.0) for x in level_wv])
+        if level:  # the level's cells at the fine cell centres
+            x = (np.arange(n) + 0.5) / 2**level - 0.5
+            den, num = bilinear(smooth, x[:, None], x[None, :], outside="edge")
+        reach = np.isnan(out) & (den > 1e-3)
+        out[reach] = num[reach] / den[reach]
+        sigma *= 2
+    out[np.isnan(out)] = float(grid[ok].mean())
+    out[ok] = grid[ok]
+    return out.astype(np.float32)
+
+
+def nearest_filled(grid: NDArray) -> NDArray[np.float32]:
+    """Return ``grid`` with every NaN cell set to the value of its nearest valid cell
+    (the eval's trivial full-coverage baseline); all NaN stays NaN."""
+    from scipy.ndimage import distance_transform_edt
+
+    ok = np.isfinite(grid)
+    if ok.all() or not ok.any():
+        return grid.astype(np.float32)
+    _, (i, j) = distance_transform_edt(~ok, return_indices=True)
+    return grid[i, j].astype(np.float32)
+
+
+def point_distance(grid: NDArray) -> NDArray[np.float32]:
+    """Return, per cell, the distance to the nearest valid cell of ``grid`` over the grid's
+    size (0 on valid cells, 1 everywhere when none is valid)."""
+    from scipy.ndimage import distance_transform_edt
+
+    ok = np.isfinite(grid)
+    if not ok.any():
+        return np.ones(grid.shape, np.float32)
+    return (distance_transform_edt(~ok) / grid.shape[0]).astype(np.float32)
