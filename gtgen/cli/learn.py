@@ -32,7 +32,7 @@ def train_cmd(
     gtgen train --seeds 3               # runs/tiny-seed0 .. runs/tiny-seed2
     gtgen train --preset paper --config configs/paper_faithful.yaml
     gtgen train --resume --run-dir runs/tiny
-    torchrun --standalone --nproc_per_node 2 -m gtgen train --preset paper --run-dir runs/paper
+    torchrun --standalone --nproc_per_node 2 -m gtgen train --run-dir runs/d
     ```
     """
     from gtgen.config import load_config
@@ -108,7 +108,7 @@ def eval_cmd(
     ```
     gtgen eval --ckpt runs/latest/ckpt.pt
     gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'   # mean ± spread of seeds
-    gtgen eval data/test.zarr --ckpt runs/paper/best.pt --split all --viz 3 --device cuda
+    gtgen eval data/test.zarr --ckpt runs/paper/best.pt --split all --viz 3
     ```
     """
 
