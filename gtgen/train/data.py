@@ -61,7 +61,6 @@ NO_SCANS = ("holds no raw lidar scans, which train.geometry: scans reads (Tab. I
             "scans to the lidar role (topics.lidar) and rebuild it with gtgen extract, fuse and dem-align")
 
 
-
 class ShardDataset(Dataset):
     """Samples of a dataset store as tensors, at the model sizes of a ``TrainConfig``.
 
@@ -221,8 +220,8 @@ class ShardDataset(Dataset):
             bev = raw if tc.ranges != "micro" else micro_view(raw_s, self._bev_size)
             out["raw"] = self._scaled(bev)
             out["prior"] = torch.from_numpy(self._prior(bev, self._prior_win["bev"]))
-            if "micro" in ranges:  # finer than the points' grid: computed on it, then resampled
-                fine = tc.micro_size > n_s // 2
+            if "micro" in ranges:
+                fine = tc.micro_size > n_s // 2  # finer than the points' grid: computed on it, then resampled
                 out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s) if fine else self._prior(raw_m, self._prior_win["micro"]))
         for r, grid in (("micro", raw_m), ("short", raw)):
             if r in ranges:
