@@ -160,7 +160,7 @@ def experiments_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset from 'gtgen dem-align'"),
     preset: str = typer.Option("tiny", metavar="tiny|paper", help="the model preset of every run"),
     seeds: int = typer.Option(1, min=1, max=1000, help="seeds per run (train.seed, +1, ...); tables show mean ± spread"),
-    steps: Optional[int] = typer.Option(None, min=1, help="steps of every run [default: 500 for tiny, else the preset's]"),
+    steps: Optional[int] = typer.Option(None, min=1, help="steps of every run [default: 400 for tiny, else the preset's]"),
     tables: str = typer.Option("I,II,III,IV", metavar="I,II,III,IV", help="the paper's tables to reproduce (II shares I's runs)"),
     out: Path = typer.Option(Path("experiments"), "-o", "--out", help="folder of the runs, experiments.json and experiments.md"),
     device: Optional[str] = typer.Option(None, metavar="DEVICE", help="auto | cpu | cuda | cuda:N [default: train.device]"),

@@ -31,10 +31,12 @@ from gtgen.train.presets import PRESETS, preset_overrides
 from gtgen.train.trainer import evaluate, mean_and_spread, train
 
 # steps of every run per preset unless --steps. The tiny preset's 15 runs of one seed cost
-# about 11.6 runs of the full network (a micro-only one about half, a short-only one three
-# quarters, one without cameras or points less), so at 0.3 to 0.5 s a step 500 steps take
-# 30 to 50 minutes on 2 cores, evaluations included within the hour; other presets train their own steps
-DEFAULT_STEPS = {"tiny": 500}
+# about 13 runs of the full network (bench/experiments.py: a micro-only network as much as
+# the full one, its image branch and micro head being the same; a short-only one 0.8, the
+# camera-only and point-only ones 0.5 to 0.8), so at 0.3 to 0.5 s a step 400 steps take 26
+# to 43 minutes on 2 cores, with room in the hour for the evaluations and the scans'
+# loading; other presets train their own steps
+DEFAULT_STEPS = {"tiny": 400}
 # raw scans of the lidar input ("L") of the PointPillars and RoadRunner rows: Tab. III's largest N
 L_SCANS = 10
 TABLES = ("I", "II", "III", "IV")
