@@ -293,6 +293,24 @@ class TrainConfig(_Model):
     device: str = Field("auto", description="torch device: auto (cuda when present, else cpu), cpu, cuda, cuda:N; under torchrun each process takes cuda:LOCAL_RANK")
     precision: Literal["auto", "32", "bf16-mixed", "16-mixed"] = Field("auto", description="float precision: auto (bf16-mixed on a CUDA device that has bf16, 16-mixed on other CUDA devices, 32 on cpu), 32, bf16-mixed, or 16-mixed (with a gradient scaler)")
     sync_batchnorm: bool = Field(True, description="under torchrun on CUDA, batch norms take their statistics over the global batch (SyncBatchNorm); gloo on cpu keeps each process's own")
+    cameras: bool = Field(True, description="the cameras' Lift-Splat BEV features are an input (off: no images are loaded)")
+    points: bool = Field(True, description="PointPillars features of the point input (train.geometry) are an input (off: no points are loaded)")
+    raw_elevation: bool = Field(True, description="the raw min-z channel and the filled prior are inputs and the elevation heads correct the prior (off: the heads predict the elevation directly)")
+    ranges: Literal["both", "micro", "short"] = Field("both", description="the ranges one network predicts: both (the micro maps from the centre of the short BEV features), or one range alone with BEV features over that range only (micro: +-micro length / 2 at the short grid's cell size)")
+    geometry: Literal["voxel_map", "scans"] = Field("voxel_map", description="the point input: the stack's voxel map at t, or the last n_scans raw lidar scans (Tab. III)")
+    n_scans: int = Field(10, ge=1, description="raw scans of the N-scan input (train.geometry: scans), at least 2 m of travel apart")
+    scan_voxel_m: float = Field(0.4, gt=0, description="voxel filter edge of the accumulated scans (train.geometry: scans) [m]")
+
+    @model_validator(mode="after")
+    def _some_input(self) -> TrainConfig:
+        if not (self.cameras or self.points or self.raw_elevation):
+            raise ValueError("train.cameras, points and raw_elevation are all off: the model needs at least one input")
+        return self
+
+    @property
+    def predicted_ranges(self) -> tuple[str, ...]:
+        """The ranges the model predicts, in ``RANGES`` order."""
+        return RANGES if self.ranges == "both" else (self.ranges,)
 
 
 class GtgenConfig(_Model):

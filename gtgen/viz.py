@@ -61,8 +61,9 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
             (ds.grid("labels", r, "confidence")[index], "viridis", 0, 1), (REGION_COLORS[reg], None, None, None),
             (ds.grid("xracer", r, "elevation_m")[index], "terrain", vmin, vmax), (ds.grid("dem", r, "elevation_m")[index], "terrain", vmin, vmax),
         ]
-        if prediction:
-            panels += [(prediction[f"{r}/elevation"], "terrain", vmin, vmax), (prediction[f"{r}/risk"], "magma", 0, 1)]
+        if prediction:  # a single-range model's other range: empty panels
+            none = np.full(el.shape, np.nan)
+            panels += [(prediction.get(f"{r}/elevation", none), "terrain", vmin, vmax), (prediction.get(f"{r}/risk", none), "magma", 0, 1)]
         for c_i, (arr, cmap, lo, hi) in enumerate(panels):
             ax = fig.add_subplot(gs[row, c_i])
             im = ax.imshow(forward_up(arr), cmap=cmap, vmin=lo, vmax=hi, extent=ext, interpolation="nearest")

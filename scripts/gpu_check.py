@@ -27,7 +27,7 @@ def latency_ms(ckpt: Path, device: str, repeats: int = 20) -> tuple[float, str]:
     dev = D.resolve_device(device)
     precision = D.resolve_precision(tc.precision, dev)
     model = _trained_model(state, tc, data_cfg).to(dev)
-    images, K, T, pts, cells, raw, prior, prior_micro = example_inputs(tc, n_points=20000)
+    images, K, T, pts, cells, raw, prior, prior_micro = example_inputs(tc, tc.short_size, n_points=20000)  # the presets' full model
     points = torch.zeros(1, len(pts), 3)
     points[0] = pts * 30
     batch = {"images": images, "K": K, "T_target_cam": T, "points": points, "n_points": torch.tensor([len(pts)]),

@@ -68,6 +68,23 @@ def dataset(fused_store, drive_store, cfg) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def with_val(dataset, tmp_path_factory) -> Path:
+    """The test dataset with every fourth sample in the val split."""
+    import shutil
+
+    import zarr
+
+    out = tmp_path_factory.mktemp("val") / "dataset.zarr"
+    shutil.copytree(dataset, out)
+    g = zarr.open_group(str(out), mode="r+")
+    split = g["meta/split"][:]
+    split[::4] = 1
+    g["meta/split"][:] = split
+    reseal(out)
+    return out
+
+
 def reseal(store: Path) -> None:
     """Record a store a test edited in place as written whole (as a gtgen that wrote it so
     would have), so that the edit, not the integrity check, is what the test meets."""

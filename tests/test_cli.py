@@ -53,7 +53,7 @@ def test_help_of_every_command_shows_its_examples_one_per_line_and_types_in_word
         assert sum(line.startswith(starts) for line in lines) == len(examples), words
         assert not re.search(r"<\w+>|list\[|None", p.stdout), (words, p.stdout)
         seen += 1
-    assert seen == 15  # gtgen, its eleven commands and export's three
+    assert seen == 16  # gtgen, its twelve commands and export's three
 
 
 def test_bad_config_value_is_one_line(tmp_path):

@@ -84,6 +84,8 @@ def test_elevation_mae_by_hand_with_empty_regions():
     assert t["unobs"]["mae_m"] is None and t["unobs"]["coverage_pct"] == pytest.approx(0)  # labelled, not predicted
     assert t["obs_f"]["mae_m"] is None and t["obs_f"]["coverage_pct"] is None  # no cell at all: n/a
     assert t["total"]["mae_m"] == pytest.approx(1.5)
+    # each region's share of the labelled cells (Tab. I's header): 2 obs PC, 1 unobs
+    assert [t[k]["share_pct"] for k in ("obs_pc", "obs_f", "unobs", "total")] == pytest.approx([200 / 3, 0, 100 / 3, 100])
 
 
 def test_risk_metrics_by_hand():

@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import reseal, run_cli
+from conftest import run_cli
 from gtgen.config import load_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from test_train import SMALL_TRAIN
@@ -26,21 +26,6 @@ def _config_file(tmp_path: Path, **train) -> Path:
     c = tmp_path / "c.yaml"
     c.write_text(yaml.safe_dump({"train": {**SMALL_TRAIN["train"], **train}}))
     return c
-
-
-@pytest.fixture(scope="module")
-def with_val(dataset, tmp_path_factory) -> Path:
-    """The test dataset with every fourth sample in the val split."""
-    import zarr
-
-    out = tmp_path_factory.mktemp("val") / "dataset.zarr"
-    shutil.copytree(dataset, out)
-    g = zarr.open_group(str(out), mode="r+")
-    split = g["meta/split"][:]
-    split[::4] = 1
-    g["meta/split"][:] = split
-    reseal(out)
-    return out
 
 
 def _state(path: Path) -> dict:

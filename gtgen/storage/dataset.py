@@ -112,6 +112,12 @@ class DatasetStore(Store):
             raise KeyError(f"input {name!r} unknown; expected one of {list(SAMPLE_INPUTS)}")
         return self.read(f"inputs/{name}", rows)
 
+    @cached_property
+    def has_scans(self) -> bool:
+        """Whether the dataset holds raw lidar scans (arrays ``inputs/scan*``): the source of
+        the N-scan point input (``train.geometry: scans``)."""
+        return any(name.startswith("scan") for name in self.group["inputs"].array_keys())
+
     def voxel_offsets(self) -> NDArray[np.int64]:
         """Return (S + 1,): sample s owns voxel points offsets[s]:offsets[s + 1]."""
         return self.read("inputs/voxel_offsets")

@@ -20,6 +20,7 @@ from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
 from gtgen.grids import bilinear, filled, nearest_index, point_distance, smoothed_min_z
 from gtgen.storage.dataset import DatasetStore
+from gtgen.train.model import bev_grid
 
 
 def centre_half_coords(n_src: int, n_dst: int) -> NDArray[np.float64]:
@@ -55,13 +56,21 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
 
 
 
+# why a dataset cannot give the N-scan input, and how to get it
+NO_SCANS = ("holds no raw lidar scans, which train.geometry: scans reads (Tab. III's N-scan input); map the bags' PointCloud2 "
+            "scans to the lidar role (topics.lidar) and rebuild it with gtgen extract, fuse and dem-align")
+
+
 class ShardDataset(Dataset):
     """Samples of a dataset store as tensors, at the model sizes of a ``TrainConfig``.
 
     Works with a ``torch.utils.data.DataLoader`` and any number of workers (each opens the
     store itself); stack samples with ``gtgen.train.trainer._collate`` or the default
     collate. ``ds[i]`` is a dict of tensors (n_m / n_s = ``tc.micro_size`` / ``short_size``,
-    labels resampled by nearest cell centre; elevations relative to the base height at t):
+    n_b the BEV grid's cells: ``model.bev_grid``; labels resampled by nearest cell centre;
+    elevations relative to the base height at t). Only what the model takes is read: no
+    images without ``tc.cameras``, no points without ``tc.points``, no raw / prior grids
+    without ``tc.raw_elevation``, and the ``<r>/`` keys of the ranges it predicts only:
 
     ===========================  ======================  ==========================================
     key                          shape, dtype            meaning
@@ -74,11 +83,12 @@ class ShardDataset(Dataset):
     points, n_points             (P, 3) float32, ()      voxel points in the target frame [m], the
                                                          first n_points valid (P = max_points,
                                                          default shards.max_voxel_points)
-    raw                          (2, n_s, n_s), float32  min-z per short cell / elevation_clip_m
+    raw                          (2, n_b, n_b), float32  min-z per BEV cell / elevation_clip_m
                                                          (0 where none), and its validity (0/1)
     prior, prior_micro           (2, n, n), float32      smoothed min z filled everywhere (scaled
                                                          like raw), distance to the nearest cell
-                                                         with points / grid size
+                                                         with points / grid size; over the BEV
+                                                         grid / the micro grid (micro predicted)
     <r>/elevation                (n_r, n_r), float32     label / elevation_clip_m (NaN: no label)
     <r>/risk                     (n_r, n_r), float32     label risk 0..1 (NaN: none)
     <r>/region                   (n_r, n_r), int64       gtgen.codes: 0 none, 1 obs PC, 2 obs F, 3 unobs
@@ -95,6 +105,8 @@ class ShardDataset(Dataset):
         self.tc = tc
         self.data_cfg = store.config
         self.store = store
+        if tc.points and tc.geometry == "scans" and not store.has_scans:
+            raise TrainError(f"dataset '{path}' {NO_SCANS}")
         idx = np.arange(store.n_samples)
         if split is not None:
             code = codes.split_code(split)
@@ -106,12 +118,13 @@ class ShardDataset(Dataset):
         self._r: dict | None = None
         self._offsets = store.voxel_offsets()
         self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
+        bev_m, self._bev_size = bev_grid(tc, self.data_cfg.grids)
         W_in, H_in = store.info.image_size
         self._img_ix = (nearest_index(H_in, tc.image_height), nearest_index(W_in, tc.image_width))
         self._img_src = (W_in, H_in)
         # smoothing window of each range's prior, in that range's model cells (odd)
         grids = self.data_cfg.grids
-        cells = {r: grids.get(r).length_m / getattr(tc, f"{r}_size") for r in ("micro", "short")}
+        cells = {"micro": grids.micro.length_m / tc.micro_size, "bev": bev_m / self._bev_size}
         cells["centre"] = grids.short.length_m / store.size("short")  # the stored raw grid's own cells
         self._prior_win = {r: 2 * int(round(0.5 * tc.prior_window_m / c)) + 1 for r, c in cells.items()}
 
@@ -172,39 +185,45 @@ class ShardDataset(Dataset):
         k = int(self.indices[i])
         tc = self.tc
         out: dict[str, torch.Tensor] = {"index": torch.tensor(k)}
-        out["images"] = torch.from_numpy(self._images(g["images"][k]))
-        K = np.stack([rescale_K(Kc, self._img_src, (tc.image_width, tc.image_height)) for Kc in g["K"][k]])
-        out["K"] = torch.from_numpy(K.astype(np.float32))
-        T = g["T_target_base"][k] @ g["T_base_cam"][k]
-        out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))
-        a, b = self._offsets[k], self._offsets[k + 1]
-        pts = g["points"](a, b)
-        if len(pts) > self.max_points:
-            pts = pts[np.linspace(0, len(pts) - 1, self.max_points).astype(np.int64)]
-        padded = np.zeros((self.max_points, 3), np.float32)
-        padded[: len(pts)] = pts
-        out["points"] = torch.from_numpy(padded)
-        out["n_points"] = torch.tensor(len(pts))
-        raw_s = g["raw_elevation_m"][k]
-        raw = self._grid(raw_s, "short")
-        out["raw"] = self._scaled(raw)
-        for r in ("micro", "short"):
+        if tc.cameras:
+            out["images"] = torch.from_numpy(self._images(g["images"][k]))
+            K = np.stack([rescale_K(Kc, self._img_src, (tc.image_width, tc.image_height)) for Kc in g["K"][k]])
+            out["K"] = torch.from_numpy(K.astype(np.float32))
+            T = g["T_target_base"][k] @ g["T_base_cam"][k]
+            out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))
+        if tc.points:
+            a, b = self._offsets[k], self._offsets[k + 1]
+            pts = g["points"](a, b)
+            if len(pts) > self.max_points:
+                pts = pts[np.linspace(0, len(pts) - 1, self.max_points).astype(np.int64)]
+            padded = np.zeros((self.max_points, 3), np.float32)
+            padded[: len(pts)] = pts
+            out["points"] = torch.from_numpy(padded)
+            out["n_points"] = torch.tensor(len(pts))
+        ranges = tc.predicted_ranges
+        for r in ranges:
             el = self._grid(g[("labels", r, "elevation_m")][k], r)
             out[f"{r}/elevation"] = torch.from_numpy((np.clip(el, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m).astype(np.float32))
             out[f"{r}/risk"] = torch.from_numpy(self._grid(g[("labels", r, "risk")][k], r).astype(np.float32))
             out[f"{r}/region"] = torch.from_numpy(self._grid(g[("labels", r, "region")][k], r).astype(np.int64))
             out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[("xracer", r, "elevation_m")][k], r).astype(np.float32))
             out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
-        # the raw min-z grid is short range; its micro view is exactly its centre half
+        # the raw min-z grid is short range (the evaluation's raw baselines read it too); its
+        # micro view is exactly its centre half
+        raw_s = g["raw_elevation_m"][k]
         n_s = raw_s.shape[0]
+        raw = self._grid(raw_s, "short")
         raw_m = micro_view(raw_s, tc.micro_size)
-        out["micro/raw_elevation"] = torch.from_numpy(raw_m.astype(np.float32))
-        # the priors the heads correct, each range at its own resolution, scaled like "raw":
-        # (smoothed min z filled everywhere, distance to the nearest cell with points)
-        out["prior"] = torch.from_numpy(self._prior(raw, self._prior_win["short"]))
-        if tc.micro_size > n_s // 2:  # finer than the points' grid: computed on it, then resampled
-            out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s))
-        else:
-            out["prior_micro"] = torch.from_numpy(self._prior(raw_m, self._prior_win["micro"]))
-        out["short/raw_elevation"] = torch.from_numpy(raw.astype(np.float32))
+        if tc.raw_elevation:
+            # the priors the heads correct, each grid at its own resolution, scaled like "raw":
+            # (smoothed min z filled everywhere, distance to the nearest cell with points)
+            bev = raw if tc.ranges != "micro" else micro_view(raw_s, self._bev_size)
+            out["raw"] = self._scaled(bev)
+            out["prior"] = torch.from_numpy(self._prior(bev, self._prior_win["bev"]))
+            if "micro" in ranges:
+                fine = tc.micro_size > n_s // 2  # finer than the points' grid: computed on it, then resampled
+                out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s) if fine else self._prior(raw_m, self._prior_win["micro"]))
+        for r, grid in (("micro", raw_m), ("short", raw)):
+            if r in ranges:
+                out[f"{r}/raw_elevation"] = torch.from_numpy(grid.astype(np.float32))
         return out

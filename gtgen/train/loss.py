@@ -66,16 +66,19 @@ def consistency(pred: dict, beta: float = 1.0) -> torch.Tensor:
 
 
 def total_loss(pred: dict, batch: dict, tc: TrainConfig, count: Count = _local) -> tuple[torch.Tensor, dict[str, float]]:
-    """Return the weighted total and its parts (for logging); ``count`` as in ``_masked_mean``
-    (the consistency term is a plain mean: every sample has the same cells)."""
+    """Return the weighted total and its parts (for logging) over the ranges the model
+    predicts (``tc.ranges``), the consistency term only with both; ``count`` as in
+    ``_masked_mean`` (the consistency term is a plain mean: every sample has the same cells)."""
     parts = {}
-    total = torch.zeros((), device=pred["short/elevation"].device)
-    for rng in ("micro", "short"):
+    ranges = tc.predicted_ranges
+    total = torch.zeros((), device=pred[f"{ranges[0]}/elevation"].device)
+    for rng in ranges:
         lt, le = range_losses(pred, batch, rng, tc, count)
         parts[f"{rng}/trav"], parts[f"{rng}/ele"] = float(lt.detach()), float(le.detach())
         total = total + tc.mu * lt + tc.lam * le
-    lc = consistency(pred, tc.elevation_beta_m / tc.elevation_clip_m)
-    parts["cons"] = float(lc.detach())
-    total = total + tc.gamma * lc
+    if len(ranges) == 2:
+        lc = consistency(pred, tc.elevation_beta_m / tc.elevation_clip_m)
+        parts["cons"] = float(lc.detach())
+        total = total + tc.gamma * lc
     parts["total"] = float(total.detach())
     return total, parts

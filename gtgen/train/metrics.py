@@ -32,10 +32,13 @@ class ElevationMAE:
             self.abs_sum[name] += float(np.abs(pred_m[sel] - label_m[sel]).sum())
 
     def table(self) -> dict[str, dict[str, float | None]]:
-        """Return per region: MAE [m] (None when no cell) and coverage [%] of labelled cells."""
+        """Return per region: MAE [m] (None when no cell), coverage [%] of its labelled cells
+        and its share [%] of all labelled cells (the paper's Tab. I header)."""
+        total = self.n_label["total"]
         return {
             k: {"mae_m": (self.abs_sum[k] / self.n[k]) if self.n[k] else None,
-                "coverage_pct": (100.0 * self.n[k] / self.n_label[k]) if self.n_label[k] else None}
+                "coverage_pct": (100.0 * self.n[k] / self.n_label[k]) if self.n_label[k] else None,
+                "share_pct": (100.0 * self.n_label[k] / total) if total else None}
             for k in REGIONS
         }
 

@@ -1,7 +1,9 @@
 """M&M-lite: Lift-Splat image BEV + PointPillars + raw elevation -> hierarchical decoder.
 
 Short maps come from a U-Net over the fused BEV features; the micro maps from the
-centre crop (+-50 m) of the BEV and short features, upsampled (Sec. III-D).
+centre crop (+-50 m) of the BEV and short features, upsampled (Sec. III-D). Each input
+(``train.cameras``, ``points``, ``raw_elevation``) can be left out, and a network can
+predict one range alone (``train.ranges``): the paper's baselines (Sec. IV-B).
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gtgen.config import TrainConfig
+from gtgen.config import GridsConfig, TrainConfig
 from gtgen.train.backbones import EfficientNetFPN, ResBlock, SmallCNN, _block
 from gtgen.train.bev_pool import bev_pool
 from gtgen.train.pillars import PointPillars, cell_index
@@ -117,25 +119,39 @@ def _dilated(c: int, d: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(c, c, 3, 1, d, dilation=d, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True))
 
 
-class MMLite(nn.Module):
-    """The network: returns a dict of 'micro/elevation', 'micro/risk', 'short/...' maps.
+def bev_grid(tc: TrainConfig, grids: GridsConfig) -> tuple[float, int]:
+    """Return the edge length [m] and cells per side of the model's fused BEV features: the
+    short grid at ``tc.short_size`` cells, or for a micro-only model (``tc.ranges``) only the
+    micro grid's extent (its centre half) at the same cell size."""
+    if tc.ranges == "micro":
+        return grids.micro.length_m, (tc.short_size + 1) // 2
+    return grids.short.length_m, tc.short_size
 
-    Inputs fused on the short grid: Lift-Splat image features, PointPillars features, the
-    raw min-z channel (value, validity) and the prior the heads correct (the smoothed min z
-    filled everywhere, the distance to the nearest cell with points). A four-level U-Net
-    whose bottom (1/8 of the grid) has dilated convolutions and a global context feature,
-    so a cell's receptive field spans the whole short grid; the micro maps come from the
-    centre crop of its inputs and top features, upsampled and refined (Sec. III-D).
+
+class MMLite(nn.Module):
+    """The network: returns a dict of 'micro/elevation', 'micro/risk', 'short/...' maps
+    (of the ranges ``tc.ranges`` names).
+
+    Inputs fused on the BEV grid (``bev_grid``), each one switchable: Lift-Splat image
+    features (``tc.cameras``), PointPillars features (``tc.points``), the raw min-z channel
+    (value, validity) and the prior the heads correct (the smoothed min z filled
+    everywhere, the distance to the nearest cell with points; ``tc.raw_elevation``; without
+    them the heads predict the elevation itself). A four-level U-Net whose bottom (1/8 of
+    the grid) has dilated convolutions and a global context feature, so a cell's receptive
+    field spans the whole grid; the micro maps come from the centre crop of its inputs and
+    top features (all of them for a micro-only network), upsampled and refined (Sec. III-D).
     """
 
-    def __init__(self, tc: TrainConfig, short_length_m: float) -> None:
+    def __init__(self, tc: TrainConfig, bev_length_m: float, bev_size: int) -> None:
         super().__init__()
         self.tc = tc
-        S = tc.short_size
-        res = short_length_m / S
-        self.lift = LiftSplat(tc, S, res)
-        self.pillars = PointPillars(tc.pillar_channels, S, res, tc.max_pillars_train, tc.max_pillars_test, tc.max_points_per_pillar)
-        cin = tc.image_channels + tc.pillar_channels + 4
+        self.ranges = tc.predicted_ranges
+        S = bev_size
+        res = bev_length_m / S
+        self.lift = LiftSplat(tc, S, res) if tc.cameras else None
+        self.pillars = (PointPillars(tc.pillar_channels, S, res, tc.max_pillars_train, tc.max_pillars_test, tc.max_points_per_pillar)
+                        if tc.points else None)
+        cin = tc.image_channels * tc.cameras + tc.pillar_channels * tc.points + 4 * tc.raw_elevation
         c = tc.decoder_channels
         self.enc1 = ResBlock(cin, c)
         self.enc2 = nn.Sequential(_block(c, 2 * c, 2), ResBlock(2 * c, 2 * c))
@@ -144,17 +160,25 @@ class MMLite(nn.Module):
         self.up3 = ResBlock(4 * c + 4 * c, 4 * c)
         self.up2 = ResBlock(4 * c + 2 * c, 2 * c)
         self.up1 = ResBlock(2 * c + c, c)
-        self.short_head = nn.Conv2d(c, 1, 1)
-        self.micro = nn.Sequential(ResBlock(cin + c, c), ResBlock(c, c))
-        self.micro_refine = ResBlock(c + 2, c)
-        self.micro_head = nn.Conv2d(c, 1, 1)
-        # zero-initialised elevation heads: training starts from the filled min-z prior
-        for head in (self.short_head, self.micro_head):
+        heads = []
+        if "short" in self.ranges:
+            self.short_head = nn.Conv2d(c, 1, 1)
+            heads.append(self.short_head)
+        if "micro" in self.ranges:
+            self.micro = nn.Sequential(ResBlock(cin + c, c), ResBlock(c, c))
+            self.micro_refine = ResBlock(c + 2 * tc.raw_elevation, c)
+            self.micro_head = nn.Conv2d(c, 1, 1)
+            heads.append(self.micro_head)
+        # zero-initialised elevation heads: training starts from the filled min-z prior (or flat ground without it)
+        for head in heads:
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
         # risk heads of their own: a 1x1 layer right on ReLU features lost every positive
         # weight early (all cells "no risk") and then could not rise above its bias
-        self.short_risk, self.micro_risk = _risk_head(c), _risk_head(c)
+        if "short" in self.ranges:
+            self.short_risk = _risk_head(c)
+        if "micro" in self.ranges:
+            self.micro_risk = _risk_head(c)
 
     @staticmethod
     def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -164,16 +188,16 @@ class MMLite(nn.Module):
         """Return the maps of a collated batch (``ShardDataset``'s keys); the optional key
         ``point_rand`` (B, P) holds the training's random priorities of the points, which pick
         the pillars' points (without it, the first points in order)."""
-        return self.decode(batch, self.pillars(batch["points"], batch["n_points"], batch.get("point_rand")))
+        pillars = self.pillars(batch["points"], batch["n_points"], batch.get("point_rand")) if self.pillars is not None else None
+        return self.decode(batch, pillars)
 
-    def decode(self, batch: dict[str, torch.Tensor], pillars: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Return the maps from the batch's images, grids and the PointPillars features."""
-        x = torch.cat([
-            self.lift(batch["images"], batch["K"], batch["T_target_cam"]),
-            pillars,
-            batch["raw"],
-            batch["prior"],
-        ], 1)
+    def decode(self, batch: dict[str, torch.Tensor], pillars: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Return the maps from the batch's images, grids and the PointPillars features (each
+        only if the model takes it)."""
+        parts = [self.lift(batch["images"], batch["K"], batch["T_target_cam"])] if self.lift is not None else []
+        parts += [pillars] if pillars is not None else []
+        parts += [batch["raw"], batch["prior"]] if self.tc.raw_elevation else []
+        x = torch.cat(parts, 1)
         e1 = self.enc1(x)
         e2 = self.enc2(e1)
         e3 = self.enc3(e2)
@@ -181,10 +205,19 @@ class MMLite(nn.Module):
         d3 = self.up3(torch.cat([self._up(e4, e3), e3], 1))
         d2 = self.up2(torch.cat([self._up(d3, e2), e2], 1))
         d1 = self.up1(torch.cat([self._up(d2, e1), e1], 1))
-        s = torch.cat([self.short_head(d1), self.short_risk(d1)], 1)
-        m = self.micro(centre_half(torch.cat([x, d1], 1)))  # +-50 m of +-100 m
-        m = F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False)
-        m = self.micro_refine(torch.cat([m, batch["prior_micro"]], 1))
-        m = torch.cat([self.micro_head(m), self.micro_risk(m)], 1)
-        return {"short/elevation": batch["prior"][:, 0] + s[:, 0], "short/risk": torch.sigmoid(s[:, 1]), "short/risk_logit": s[:, 1],
-                "micro/elevation": batch["prior_micro"][:, 0] + m[:, 0], "micro/risk": torch.sigmoid(m[:, 1]), "micro/risk_logit": m[:, 1]}
+        out: dict[str, torch.Tensor] = {}
+        if "short" in self.ranges:
+            out.update(self._maps("short", torch.cat([self.short_head(d1), self.short_risk(d1)], 1), batch.get("prior")))
+        if "micro" in self.ranges:
+            f = torch.cat([x, d1], 1)
+            m = self.micro(centre_half(f) if "short" in self.ranges else f)  # +-50 m of +-100 m, or the whole micro-only grid
+            m = F.interpolate(m, size=(self.tc.micro_size, self.tc.micro_size), mode="bilinear", align_corners=False)
+            m = self.micro_refine(torch.cat([m, batch["prior_micro"]], 1) if self.tc.raw_elevation else m)
+            out.update(self._maps("micro", torch.cat([self.micro_head(m), self.micro_risk(m)], 1), batch.get("prior_micro")))
+        return out
+
+    def _maps(self, rng: str, head: torch.Tensor, prior: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Return range ``rng``'s maps from its heads' (B, 2, n, n) output: elevation (the
+        prior corrected, or the head itself without the prior), risk and its logit."""
+        elevation = prior[:, 0] + head[:, 0] if self.tc.raw_elevation else head[:, 0]
+        return {f"{rng}/elevation": elevation, f"{rng}/risk": torch.sigmoid(head[:, 1]), f"{rng}/risk_logit": head[:, 1]}

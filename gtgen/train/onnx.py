@@ -25,6 +25,11 @@ prior, prior_micro        (B, 2, S|M, S|M)       filled smoothed min z (scaled),
 Outputs (``OUTPUTS``): ``micro_elevation``, ``micro_risk`` (B, M, M) and ``short_elevation``,
 ``short_risk`` (B, S, S); elevations scaled (multiply by ``elevation_clip_m`` for metres),
 risk 0..1. Grids are indexed (x, y), x forward, cell 0 at the most negative coordinate.
+
+A model that leaves inputs out or predicts one range (``train.cameras``, ``points``,
+``raw_elevation``, ``ranges``) has only the inputs and outputs it uses, in this order
+(``graph_inputs``, ``graph_outputs``); for a micro-only model S is its BEV grid's size
+(``gtgen.train.model.bev_grid``).
 """
 
 from __future__ import annotations
@@ -43,27 +48,46 @@ OUTPUTS = ("micro_elevation", "micro_risk", "short_elevation", "short_risk")
 OPSET = 18  # ScatterElements with a max reduction (the pillars' max-pool)
 
 
+def graph_inputs(tc) -> tuple[str, ...]:
+    """Return the names of the graph's inputs for a model of ``TrainConfig`` ``tc``."""
+    used = {"images": tc.cameras, "K": tc.cameras, "T_target_cam": tc.cameras, "pillar_points": tc.points, "pillar_cells": tc.points,
+            "raw": tc.raw_elevation, "prior": tc.raw_elevation, "prior_micro": tc.raw_elevation and "micro" in tc.predicted_ranges}
+    return tuple(n for n in INPUTS if used[n])
+
+
+def graph_outputs(tc) -> tuple[str, ...]:
+    """Return the names of the graph's outputs for a model of ``TrainConfig`` ``tc``."""
+    return tuple(n for n in OUTPUTS if n.split("_")[0] in tc.predicted_ranges)
+
+
 class Deployable(nn.Module):
-    """The model with the ONNX graph's inputs and outputs (``INPUTS``, ``OUTPUTS``)."""
+    """The model with the ONNX graph's inputs and outputs (``graph_inputs``, ``graph_outputs``)."""
 
     def __init__(self, model: nn.Module) -> None:
         super().__init__()
         self.model = model
+        self.inputs, self.outputs = graph_inputs(model.tc), graph_outputs(model.tc)
 
-    def forward(self, images, K, T_target_cam, pillar_points, pillar_cells, raw, prior, prior_micro):  # noqa: N803
-        feats = self.model.pillars.encode(pillar_points, pillar_cells, images.shape[0])
-        out = self.model.decode({"images": images, "K": K, "T_target_cam": T_target_cam, "raw": raw, "prior": prior,
-                                 "prior_micro": prior_micro}, feats)
-        return tuple(out[k.replace("_", "/", 1)] for k in OUTPUTS)
+    def forward(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        named = dict(zip(self.inputs, args))
+        grids = [named[n] for n in ("images", "raw") if n in named]
+        feats = None
+        if self.model.pillars is not None:  # the batch size from an input that has one (a points-only graph: 1)
+            feats = self.model.pillars.encode(named["pillar_points"], named["pillar_cells"], grids[0].shape[0] if grids else 1)
+        out = self.model.decode(named, feats)
+        return tuple(out[k.replace("_", "/", 1)] for k in self.outputs)
 
 
 def deploy_inputs(model: nn.Module, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
     """Return the graph's inputs for a collated ``ShardDataset`` batch (the testing pillars)."""
-    from gtgen.train.pillars import pillarize
-
+    named = dict(batch)
     pp = model.pillars
-    pts, cells = pillarize(batch["points"], batch["n_points"], pp.bev_size, pp.bev_res, pp.caps[1], pp.per_pillar)
-    return (batch["images"], batch["K"], batch["T_target_cam"], pts, cells, batch["raw"], batch["prior"], batch["prior_micro"])
+    if pp is not None:
+        from gtgen.train.pillars import pillarize
+
+        named["pillar_points"], named["pillar_cells"] = pillarize(batch["points"], batch["n_points"], pp.bev_size, pp.bev_res,
+                                                                  pp.caps[1], pp.per_pillar)
+    return tuple(named[n] for n in graph_inputs(model.tc))
 
 
 @dataclass
@@ -75,15 +99,18 @@ class OnnxResult:
     step: int
 
 
-def example_inputs(tc, n_points: int = 1000) -> tuple[torch.Tensor, ...]:
-    """Return graph inputs of the right shapes and types for ``tc`` (batch 1; the values
-    do not matter to the graph: it has no branch on data)."""
-    H, W, S, M = tc.image_height, tc.image_width, tc.short_size, tc.micro_size
+def example_inputs(tc, bev_size: int, n_points: int = 1000) -> tuple[torch.Tensor, ...]:
+    """Return graph inputs (``graph_inputs``) of the right shapes and types for ``tc`` and a
+    BEV grid of ``bev_size`` cells (batch 1; the values do not matter to the graph: it has no
+    branch on data)."""
+    H, W, S, M = tc.image_height, tc.image_width, bev_size, tc.micro_size
     K = torch.tensor([[W / 2, 0.0, W / 2 - 0.5], [0.0, W / 2, H / 2 - 0.5], [0.0, 0.0, 1.0]]).expand(1, 4, 3, 3)
     g = torch.Generator().manual_seed(0)
-    return (torch.randint(0, 256, (1, 4, 3, H, W), dtype=torch.uint8, generator=g), K.contiguous(), torch.eye(4).expand(1, 4, 4, 4).contiguous(),
-            torch.randn(n_points, 3, generator=g), torch.randint(0, S * S, (n_points,), generator=g), torch.zeros(1, 2, S, S),
-            torch.zeros(1, 2, S, S), torch.zeros(1, 2, M, M))
+    every = {"images": torch.randint(0, 256, (1, 4, 3, H, W), dtype=torch.uint8, generator=g), "K": K.contiguous(),
+             "T_target_cam": torch.eye(4).expand(1, 4, 4, 4).contiguous(), "pillar_points": torch.randn(n_points, 3, generator=g),
+             "pillar_cells": torch.randint(0, S * S, (n_points,), generator=g), "raw": torch.zeros(1, 2, S, S),
+             "prior": torch.zeros(1, 2, S, S), "prior_micro": torch.zeros(1, 2, M, M)}
+    return tuple(every[n] for n in graph_inputs(tc))
 
 
 def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
@@ -92,20 +119,22 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
     minutes, for this graph). The model's ``doc_string`` carries gtgen's signature (a later
     export may replace the file; anything else there only with ``overwrite``)."""
     from gtgen.train.checkpoint import load_checkpoint
+    from gtgen.train.model import bev_grid
     from gtgen.train.trainer import _trained_model
 
     state, tc, data_cfg = load_checkpoint(ckpt)
     model = _trained_model(state, tc, data_cfg).requires_grad_(False)
-    args = example_inputs(tc)
+    args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1])
     net = Deployable(model).eval()
     with atomic_output(out, overwrite) as tmp, torch.no_grad(), warnings.catch_warnings():
         # the tracer warns of every Python branch on a shape: the graph is for these shapes
         warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        torch.onnx.export(net, args, str(tmp), dynamo=False, opset_version=OPSET, input_names=list(INPUTS), output_names=list(OUTPUTS),
-                          dynamic_axes={"pillar_points": {0: "n"}, "pillar_cells": {0: "n"}})
+        torch.onnx.export(net, args, str(tmp), dynamo=False, opset_version=OPSET, input_names=list(net.inputs),
+                          output_names=list(net.outputs),
+                          dynamic_axes={n: {0: "n"} for n in ("pillar_points", "pillar_cells") if n in net.inputs})
         import onnx
 
         m = onnx.load(str(tmp))
         m.producer_name, m.doc_string = "gtgen", signature()
         onnx.save(m, str(tmp))
-    return OnnxResult(out, INPUTS, OUTPUTS, state["preset"], state["step"])
+    return OnnxResult(out, net.inputs, net.outputs, state["preset"], state["step"])

@@ -31,7 +31,7 @@ from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
 from gtgen.train.data import ShardDataset
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
-from gtgen.train.model import MMLite
+from gtgen.train.model import MMLite, bev_grid
 from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
 from gtgen.train.sampler import StepBatchSampler
 
@@ -47,7 +47,7 @@ EVAL_ROWS = {
     "raw_nearest": "raw min z, nearest-filled",
 }
 # the validation metric best.pt is chosen by (lower is better): the mean of the micro and
-# short elevation MAE over all labelled cells of the val split [m]
+# short elevation MAE (of the ranges the model predicts) over all labelled cells of the val split [m]
 BEST_METRIC = "total_mae_m"
 # the random streams of a step (with the seed and the step): the global batch's mirror and
 # pillar draws (the same on every process), and the model's own (stochastic depth), per process
@@ -75,18 +75,21 @@ def _to(batch: dict, device: torch.device) -> dict:
 
 def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
     """Return a fresh model; loads ``backbone_weights`` into the EfficientNet-B0 if given.
-    Raises ConfigError for grids the model cannot tile: it predicts the micro maps from the
-    centre half of the short grid, and its encoder halves the short grid three times."""
+    Raises ConfigError for grids the model cannot tile: its micro maps and their inputs come
+    from the centre half of the short grid, and its encoder halves its BEV grid three times."""
     gm, gs = data_cfg.grids.micro, data_cfg.grids.short
-    if abs(2 * gm.length_m - gs.length_m) > 1e-6:
-        raise ConfigError(f"grids.micro spans {gm.length_m:g} m and grids.short {gs.length_m:g} m: M&M-lite predicts the micro maps "
-                          f"from the centre half of the short grid, so the micro grid must span {gs.length_m / 2:g} m")
-    if tc.short_size < 16 or tc.micro_size < 8:
-        raise ConfigError(f"train.short_size {tc.short_size} / micro_size {tc.micro_size}: the model needs at least 16 short and 8 micro cells")
-    if tc.backbone_weights and tc.image_backbone != "efficientnet_b0":
-        raise ConfigError(f"train.backbone_weights loads EfficientNet-B0 weights, but train.image_backbone is {tc.image_backbone!r}; "
-                          "set image_backbone: efficientnet_b0 (the paper preset) or drop backbone_weights")
-    model = MMLite(tc, gs.length_m)
+    if "micro" in tc.predicted_ranges and abs(2 * gm.length_m - gs.length_m) > 1e-6:
+        raise ConfigError(f"grids.micro spans {gm.length_m:g} m and grids.short {gs.length_m:g} m: M&M-lite takes the micro maps and "
+                          f"their inputs from the centre half of the short grid, so the micro grid must span {gs.length_m / 2:g} m")
+    bev_m, bev_cells = bev_grid(tc, data_cfg.grids)
+    if bev_cells < 16 or tc.micro_size < 8:
+        raise ConfigError(f"train.short_size {tc.short_size} / micro_size {tc.micro_size}: the model needs at least 16 BEV cells "
+                          f"(the short size, or half of it for train.ranges: micro) and 8 micro cells")
+    if tc.backbone_weights and (tc.image_backbone != "efficientnet_b0" or not tc.cameras):
+        raise ConfigError(f"train.backbone_weights loads EfficientNet-B0 weights, but train.image_backbone is {tc.image_backbone!r}"
+                          f"{'' if tc.cameras else ' and train.cameras is off'}; set image_backbone: efficientnet_b0 with cameras on "
+                          "(the paper preset) or drop backbone_weights")
+    model = MMLite(tc, bev_m, bev_cells)
     if tc.backbone_weights:
         from gtgen.train.backbones import load_backbone_weights
 
@@ -354,8 +357,9 @@ def _augment(batch: dict, tc: TrainConfig, step: int, rank: int, global_batch: i
     if tc.mirror_p > 0:
         g = torch.Generator().manual_seed(_step_seed(tc.seed, step, _MIRROR))
         out = mirror(out, (torch.rand(global_batch, generator=g) < tc.mirror_p)[sl])
-    g = torch.Generator().manual_seed(_step_seed(tc.seed, step, _PILLARS))
-    out["point_rand"] = torch.rand(global_batch, batch["points"].shape[1], generator=g)[sl]
+    if "points" in batch:
+        g = torch.Generator().manual_seed(_step_seed(tc.seed, step, _PILLARS))
+        out["point_rand"] = torch.rand(global_batch, batch["points"].shape[1], generator=g)[sl]
     return out
 
 
@@ -369,7 +373,7 @@ def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.devi
     finally:
         model.train()
     row = {"loss": res["loss"], BEST_METRIC: res[BEST_METRIC]}
-    for r in ("micro", "short"):
+    for r in tc.predicted_ranges:
         for reg, v in res["elevation"][r]["model"].items():
             row[f"{r}/mae_{reg}_m"] = float("nan") if v["mae_m"] is None else v["mae_m"]
         f1 = res["risk"][r]["model"]["f1"]
@@ -387,12 +391,14 @@ def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.devi
 
 def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.device, precision: str, baselines: bool = True,
               progress: str | None = None) -> dict:
-    """Return the paper's tables of ``model`` (in eval mode) on ``ds``, batched on ``dev``;
-    with ``baselines`` also the X-Racer and raw rows; plus the loss."""
+    """Return the paper's tables of ``model`` (in eval mode) on ``ds``, batched on ``dev``, for
+    the ranges it predicts (the consistency only with both); with ``baselines`` also the
+    X-Racer and raw rows; plus the loss."""
     clip = tc.elevation_clip_m
+    ranges = tc.predicted_ranges
     rows = EVAL_ROWS if baselines else {"model": EVAL_ROWS["model"]}
-    acc = {r: {m: ElevationMAE() for m in rows} for r in ("micro", "short")}
-    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in (("model", "xracer") if baselines else ("model",))} for r in ("micro", "short")}
+    acc = {r: {m: ElevationMAE() for m in rows} for r in ranges}
+    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in (("model", "xracer") if baselines else ("model",))} for r in ranges}
     cons = Consistency()
     loss_sum, n = 0.0, 0
     loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=tc.workers, collate_fn=_collate,
@@ -409,7 +415,7 @@ def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.devic
             loss_sum += float(loss) * B
             n += B
             pred = {k: v.cpu().numpy() for k, v in out.items()}
-            for r in ("micro", "short"):
+            for r in ranges:
                 lab = cpu[f"{r}/elevation"].numpy() * clip
                 reg = cpu[f"{r}/region"].numpy()
                 pe = pred[f"{r}/elevation"] * clip
@@ -426,9 +432,10 @@ def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.devic
                 acc[r]["raw"].add(raw, lab, reg)
                 acc[r]["raw_nearest"].add(np.stack([nearest_filled(x) for x in raw]), lab, reg)
                 risk[r]["xracer"].add(cpu[f"{r}/xr_risk"].numpy(), cpu[f"{r}/risk"].numpy())
-            cons.add(pred["micro/elevation"] * clip, pred["short/elevation"] * clip)
+            if len(ranges) == 2:
+                cons.add(pred["micro/elevation"] * clip, pred["short/elevation"] * clip)
     elevation = {r: {m: a.table() for m, a in acc[r].items()} for r in acc}
-    totals = [elevation[r]["model"]["total"]["mae_m"] for r in ("micro", "short")]
+    totals = [elevation[r]["model"]["total"]["mae_m"] for r in ranges]
     return {"elevation": elevation, "risk": {r: {m: v.table() for m, v in risk[r].items()} for r in risk},
             "consistency_mae_m": cons.value(), "loss": loss_sum / max(n, 1),
             BEST_METRIC: float(np.mean(totals)) if all(t is not None for t in totals) else float("nan")}
@@ -443,10 +450,12 @@ def _link_latest(run_dir: Path) -> None:
         latest.symlink_to(run_dir.name)
 
 
-def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None) -> dict:
+def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None,
+             baselines: bool = True) -> dict:
     """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (None: all),
     computed on ``device`` (default ``auto``: CUDA when present), batched, with the
-    checkpoint's loader workers and precision."""
+    checkpoint's loader workers and precision: the rows of the ranges the model predicts
+    (``ranges``), with the X-Racer and raw rows unless ``baselines`` is off."""
     state, tc, data_cfg = load_checkpoint(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
@@ -460,10 +469,10 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     dev = D.resolve_device(device or "auto")
     model = _trained_model(state, tc, data_cfg).to(dev)
     t0 = time.perf_counter()
-    res = _run_eval(model, ds, tc, dev, D.resolve_precision(tc.precision, dev), progress="eval: batches")
+    res = _run_eval(model, ds, tc, dev, D.resolve_precision(tc.precision, dev), baselines, progress="eval: batches")
     secs = time.perf_counter() - t0
     return {
-        "split": used, "samples": len(ds), "preset": state["preset"], "step": state["step"],
+        "split": used, "samples": len(ds), "preset": state["preset"], "step": state["step"], "ranges": list(tc.predicted_ranges),
         "elevation": res["elevation"], "risk": res["risk"], "consistency_mae_m": res["consistency_mae_m"],
         "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
         "device": str(dev), "seconds_per_sample": secs / len(ds),
@@ -478,9 +487,19 @@ def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val", 
     runs = [evaluate(dataset, c, None, split, device) for c in ckpts]
     if len({r["preset"] for r in runs}) > 1:
         raise TrainError(f"checkpoints of several presets: {sorted({r['preset'] for r in runs})}; evaluate one preset's seeds together")
-    out = _reduce(runs, np.mean)
-    out["spread"] = _reduce(runs, lambda v: np.std(v, ddof=1) if len(v) > 1 else 0.0)
+    if len({tuple(r["ranges"]) for r in runs}) > 1:
+        raise TrainError(f"checkpoints predicting other ranges: {sorted({'+'.join(r['ranges']) for r in runs})}; evaluate one model's seeds together")
+    out = mean_and_spread(runs)
     out["runs"] = [{"ckpt": str(c), **r} for c, r in zip(ckpts, runs)]
+    return out
+
+
+def mean_and_spread(results: list[dict]) -> dict:
+    """Return ``results[0]``'s layout with every metric replaced by its mean over the results,
+    plus ``spread``: the same layout with the standard deviations (0 for one result; None
+    where any result has none)."""
+    out = _reduce(results, np.mean)
+    out["spread"] = _reduce(results, lambda v: np.std(v, ddof=1) if len(v) > 1 else 0.0)
     return out
 
 
