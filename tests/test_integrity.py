@@ -221,6 +221,45 @@ def test_export_geotiff_writes_into_a_folder_and_leaves_the_rest(dataset, tmp_pa
     assert owned(tif)
 
 
+def test_train_eval_and_viz_refuse_the_users_files_before_any_work(dataset, tmp_path):
+    """train --run-dir into a folder of the user's: a file of a run's name there (its CSV
+    curves too, which carry no signature) stops the run before it writes anything;
+    --overwrite replaces it; a run folder gtgen wrote is its own to write again."""
+    import yaml
+
+    from test_train import SMALL_TRAIN
+
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    for name in ("train.csv", "ckpt.pt", "metrics.json"):
+        run = tmp_path / name.replace(".", "_")
+        run.mkdir()
+        (run / name).write_text("mine")
+        (run / "notes.txt").write_text("notes")
+        p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, cwd=tmp_path)
+        line = _one_line(p)
+        assert p.returncode == 1 and "--overwrite" in line and str(run / name) in line, line
+        assert sorted(x.name for x in run.iterdir()) == sorted([name, "notes.txt"])  # nothing written beside them
+        assert (run / name).read_text() == "mine"
+    run = tmp_path / "train_csv"
+    p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, "--overwrite", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert (run / "train.csv").read_text().startswith("step,") and owned(run / "ckpt.pt")
+    p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, cwd=tmp_path)  # its own run folder now
+    assert p.returncode == 0, p.stderr
+    assert (run / "notes.txt").read_text() == "notes"
+    # eval and viz --ckpt refuse a file of the user's before they evaluate (no table printed)
+    mine = tmp_path / "mine.json"
+    mine.write_text("mine")
+    for cmd in (("eval", dataset, "--ckpt", run / "ckpt.pt", "--split", "all", "-o", mine),
+                ("viz", dataset, "-n", "1", "--ckpt", run / "ckpt.pt", "-o", mine)):
+        p = run_cli(*cmd, cwd=tmp_path)
+        assert p.returncode == 1 and "--overwrite" in _one_line(p) and p.stdout == "", (cmd, p.stdout)
+        assert mine.read_text() == "mine"
+    p = run_cli("eval", dataset, "--ckpt", run / "ckpt.pt", "--split", "all", "-o", mine, "--overwrite", cwd=tmp_path)
+    assert p.returncode == 0 and owned(mine), p.stderr
+
+
 def test_a_rerun_replaces_its_own_outputs_and_overwrite_replaces_the_users(tmp_path):
     out = tmp_path / "r.json"
     write_json(out, {"a": 1})

@@ -36,15 +36,16 @@ def weights_digest(state: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def save_checkpoint(path: Path, payload: dict) -> None:
-    """Write ``payload`` (with its weights' digest added) to ``path`` atomically. It is
+def save_checkpoint(path: Path, payload: dict, overwrite: bool = False) -> None:
+    """Write ``payload`` (with its weights' digest added) to ``path`` atomically (a file
+    there that gtgen did not write only with ``overwrite``). It is
     serialised in memory first, so that a full disk is the atomic writer's one-line error
     (torch.save into a file reports it as a generic RuntimeError)."""
     # the signature first, near the file's start: a later save may replace it (runtime.output.owned)
     payload = {"written_by": signature(), **payload, "version": CKPT_VERSION, "model_sha256": weights_digest(payload["model"])}
     buf = io.BytesIO()
     torch.save(payload, buf)
-    write_atomic(path, buf.getbuffer())
+    write_atomic(path, buf.getbuffer(), overwrite)
 
 
 def load_checkpoint(path: Path, preset: str | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:
