@@ -260,6 +260,23 @@ def test_train_eval_and_viz_refuse_the_users_files_before_any_work(dataset, tmp_
     assert p.returncode == 0 and owned(mine), p.stderr
 
 
+def test_report_refuses_the_users_files_before_any_work(dataset, tmp_path):
+    """A user's report.json in the report folder: refused before any figure is written
+    there; a file as the report folder: one line naming it."""
+    qa = tmp_path / "qa"
+    qa.mkdir()
+    (qa / "report.json").write_text("mine")
+    p = run_cli("report", dataset, "-o", qa)
+    assert p.returncode == 1 and "--overwrite" in _one_line(p) and str(qa / "report.json") in p.stderr
+    assert [x.name for x in qa.iterdir()] == ["report.json"] and (qa / "report.json").read_text() == "mine"
+    afile = tmp_path / "a_file"
+    afile.write_text("mine")
+    p = run_cli("report", dataset, "-o", afile)
+    assert p.returncode == 1 and f"output '{afile}' is a file" in _one_line(p) and afile.read_text() == "mine"
+    p = run_cli("report", dataset, "-o", qa, "--overwrite")
+    assert p.returncode == 0 and owned(qa / "report.json"), p.stderr
+
+
 def test_a_rerun_replaces_its_own_outputs_and_overwrite_replaces_the_users(tmp_path):
     out = tmp_path / "r.json"
     write_json(out, {"a": 1})
