@@ -123,6 +123,22 @@ def test_the_error_names_the_array_and_its_samples(damaged):
             ds.grid("labels", "short", "elevation_m")[k]
 
 
+@pytest.mark.parametrize("name, array", [("bytes overwritten inside a shard", "labels/short/elevation_m"),
+                                         ("labels shard deleted", "labels/micro/elevation_m")])
+def test_the_python_apis_xarray_and_zarr_views_are_checked_too(damaged, name, array):
+    """Reads through users' own views (xarray, the zarr group) meet the same one-line error
+    as gtgen's readers: a chunk that does not decode as well as one that is missing."""
+    import gtgen
+
+    ds = gtgen.open_dataset(damaged[name])
+    group, _, layer = array.rpartition("/")
+    for read in (lambda: ds.xarray(group)[layer].values, lambda: ds.zarr[array][:]):
+        with pytest.raises(gtgen.GtgenError) as err:
+            read()
+        msg = str(err.value)
+        assert f"array '{array}' samples 16-31" in msg and "gtgen dem-align" in msg and "\n" not in msg, msg
+
+
 def test_training_on_a_damaged_dataset_stops(damaged, tmp_path):
     p = run_cli("train", damaged["image shards deleted"], "--run", tmp_path / "run", "--steps", "2", "-c", SMALL)
     assert p.returncode == 1

@@ -6,7 +6,9 @@ which validates its kind, version and completeness and reads its manifest
 (``storage/integrity.py``). Every read goes through :class:`Store`: zarr reads through a
 :class:`CheckedStore`, the fast chunk and shard readers with the manifest's check, and
 any failure to read or decode becomes one :class:`~gtgen.storage.integrity.DamagedStoreError`
-line naming the array, its rows and the command that rebuilds the store. Stages ask the
+line naming the array, its rows and the command that rebuilds the store (zarr decodes the
+checked store's chunks through a pipeline that says so, so users' xarray and zarr views of
+it meet the same line). Stages ask the
 accessors for poses, maps, samples and labels by name; no stage outside ``storage/``
 opens a zarr group or spells an array path.
 
@@ -44,6 +46,9 @@ def store_attrs(fmt: StoreFormat, **attrs: Any) -> dict[str, Any]:
 
 
 def _checked_store_class() -> type:
+    import zarr
+    from zarr.core.codec_pipeline import BatchedCodecPipeline
+    from zarr.registry import fully_qualified_name, register_pipeline
     from zarr.storage import LocalStore
 
     class CheckedStore(LocalStore):
@@ -66,6 +71,32 @@ def _checked_store_class() -> type:
         def __reduce__(self) -> tuple:
             return (_reopen_checked, (str(self.root), self.manifest.where))
 
+    class CheckedPipeline(BatchedCodecPipeline):
+        """zarr's own codec pipeline, except that a chunk of a CheckedStore that does not
+        decode (its zstd checksum, its shard index's CRC32C) is the DamagedStoreError naming
+        its array and rows, for every zarr read of the store: xarray's, the group's."""
+
+        async def read(self, batch_info: Any, out: Any, drop_axes: tuple[int, ...] = ()) -> None:
+            batch_info = list(batch_info)
+            try:
+                await super().read(batch_info, out, drop_axes)
+            except GtgenError:
+                raise
+            except Exception:  # noqa: BLE001 - zstd and the index check raise several kinds
+                store = getattr(batch_info[0][0], "store", None) if batch_info else None  # a shard's inner chunks have none
+                if not isinstance(store, CheckedStore):
+                    raise
+                for item in batch_info:  # which chunk file it was
+                    try:
+                        await super().read([item], out, drop_axes)
+                    except Exception as one:  # noqa: BLE001 - zstd and the index check raise several kinds
+                        raise store.manifest.damaged_chunk(item[0].path, f"does not decode ({type(one).__name__}: {one})".splitlines()[0]) from one
+                raise
+
+    # the default pipeline's place, unless the user chose another one (zarrs, say)
+    if zarr.config.get("codec_pipeline.path") == fully_qualified_name(BatchedCodecPipeline):
+        register_pipeline(CheckedPipeline)
+        zarr.config.set({"codec_pipeline.path": fully_qualified_name(CheckedPipeline)})
     return CheckedStore
 
 
