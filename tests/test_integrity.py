@@ -57,6 +57,7 @@ DAMAGES = {
     "meta/t_ns shard deleted": lambda ds: _shard(ds, "meta/t_ns").unlink(),
     "image shards deleted": lambda ds: _all_shards(ds, "inputs/images"),
     "array metadata corrupt": lambda ds: (ds / "labels" / "micro" / "risk" / "zarr.json").write_text("{not json"),
+    "root metadata deleted": lambda ds: (ds / "zarr.json").unlink(),
 }
 
 

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from gtgen.errors import GtgenError, StoreError
 from gtgen.runtime.output import partial_path
 from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
-from gtgen.storage.integrity import MANIFEST, DamagedStoreError, Manifest, Where, rows_text, write_manifest
+from gtgen.storage.integrity import MANIFEST, METADATA, DamagedStoreError, Manifest, Where, rows_text, write_manifest
 from gtgen.storage.schema import StoreFormat
 from gtgen.storage.shards import SampleReader
 from gtgen.storage.specs import ArraySpec, dimension_names
@@ -131,6 +131,8 @@ def complete_attrs(path: Path, fmt: StoreFormat) -> dict[str, Any]:
     try:
         attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     except Exception as err:  # noqa: BLE001 - zarr raises several types for non-stores
+        if (path / MANIFEST).is_dir():  # a store gtgen completed, whose root metadata went missing
+            raise Where(name, path, fmt.made_by).damaged(f"its root metadata '{METADATA}' is missing or unreadable") from err
         raise StoreError(f"'{path}' is not a zarr store: {err}".splitlines()[0]) from err
     if attrs.get("store") != fmt.kind:
         raise StoreError(f"'{path}' is not a gtgen {name} store (store={attrs.get('store')!r}, expected {fmt.kind!r})")
@@ -334,6 +336,21 @@ class StoreWriter:
         write_manifest(self.path)
 
 
+def _kind_by_manifest(path: Path) -> str | None:
+    """Return the kind of the store whose manifest at ``path`` lists the most arrays of that
+    kind's format (None without a readable manifest)."""
+    from gtgen.storage.schema import FORMATS
+
+    try:
+        doc = json.loads((path / MANIFEST / METADATA).read_text())["attributes"]["gtgen_manifest"]
+        arrays = {k.rsplit("/", 1)[0] for k in doc["metadata"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    overlap = {kind: len(arrays & {s.path for s in fmt.arrays}) for kind, fmt in FORMATS.items()}
+    best = max(overlap, key=overlap.__getitem__)
+    return best if overlap[best] else None
+
+
 def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
     """Check the store at ``path`` whole (any gtgen kind): every file the manifest lists,
     every metadata checksum, every chunk decoded. Return (its format, files listed,
@@ -342,13 +359,16 @@ def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
     from gtgen.storage.schema import FORMATS
 
     try:
-        kind = json.loads((Path(path) / "zarr.json").read_text()).get("attributes", {}).get("store")
+        kind = json.loads((Path(path) / METADATA).read_text()).get("attributes", {}).get("store")
     except (OSError, ValueError, AttributeError) as err:
-        raise StoreError(f"'{path}' is not a gtgen store (no readable zarr.json)") from err
+        kind = _kind_by_manifest(Path(path))  # a completed store whose root metadata went missing: verify says so
+        if kind is None:
+            raise StoreError(f"'{path}' is not a gtgen store (no readable zarr.json)") from err
     fmt = FORMATS.get(kind)
     if fmt is None:
         raise StoreError(f"'{path}' is not a gtgen store (store={kind!r}; expected one of {sorted(FORMATS)})")
-    complete_attrs(Path(path), fmt)
+    if (Path(path) / METADATA).is_file():
+        complete_attrs(Path(path), fmt)
     where = Where(_name(fmt), Path(path), fmt.made_by)
     try:
         m = Manifest(Path(path), where)
