@@ -181,6 +181,9 @@ def test_a_store_without_its_manifest_or_with_a_stray_file(dataset, tmp_path):
     shutil.rmtree(ds / "gtgen_manifest")
     with pytest.raises(DamagedStoreError, match="record of what was written"):
         DatasetStore(ds)
+    p = run_cli("verify", ds)
+    line = _one_line(p)
+    assert p.returncode == 1 and "record of what was written" in line and line.count("is damaged") == 1, line
 
 
 def test_damaged_drive_and_fused_stores_stop_the_next_stage(drive_store, fused_store, tmp_path):

@@ -374,4 +374,4 @@ def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
         m = Manifest(Path(path), where)
         return fmt, len(m.files) + len(m.metadata), verify(Path(path), where)
     except DamagedStoreError as err:
-        return fmt, 0, [str(err)]
+        return fmt, 0, [err.what]
