@@ -52,10 +52,12 @@ def load_checkpoint(path: Path, preset: str | None = None) -> tuple[dict, TrainC
     """Return a checkpoint's state with its validated train and data configs. Raises
     TrainError (one line) for a missing, unreadable, truncated or damaged file, another
     version, another preset than ``preset``, or configs this gtgen does not accept."""
+    if path.is_dir():
+        raise TrainError(f"checkpoint '{path}' is a folder, not a checkpoint file (ckpt.pt or best.pt in a run folder)")
     if not path.is_file():
         raise TrainError(f"checkpoint '{path}' does not exist")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+    try:  # as data only (tensors, numbers, strings): a file from elsewhere never runs code
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
         raise TrainError(f"checkpoint '{path}' cannot be read (truncated or not a checkpoint): {err}".splitlines()[0]) from err
     if not isinstance(state, dict) or state.get("version") != CKPT_VERSION:
