@@ -443,11 +443,12 @@ def load_config(path: Path | None = None, *overrides: dict[str, Any]) -> GtgenCo
     return build_config(*layers, *overrides)
 
 
-def save_config(cfg: GtgenConfig, path: Path) -> None:
-    """Write the resolved ``cfg`` as YAML to ``path`` (atomically; the signature in its first line)."""
+def save_config(cfg: GtgenConfig, path: Path, overwrite: bool = False) -> None:
+    """Write the resolved ``cfg`` as YAML to ``path`` (atomically; the signature in its first
+    line; a file there that gtgen did not write only with ``overwrite``)."""
     from gtgen.runtime.output import signature, write_atomic
 
-    write_atomic(path, f"# {signature()}: the resolved config\n" + yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    write_atomic(path, f"# {signature()}: the resolved config\n" + yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), overwrite)
 
 
 def default_yaml() -> str:

@@ -14,10 +14,12 @@ dataset holds the drives largest bags first (ties by name), the order they run i
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,7 @@ from gtgen.runtime.progress import track
 log = logging.getLogger(__name__)
 
 DONE = "done.json"
+UNIT_OUTPUTS = (DONE, "drive.zarr", "fused.zarr", "dataset.zarr")  # what a drive unit writes in drives/<name>/
 
 
 @dataclass
@@ -132,26 +135,30 @@ def unit_hash(bags: list[Path], cfg: GtgenConfig, dem_fingerprint: str, bag_sha2
 
 
 def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg: GtgenConfig,
-                  bag_sha256: list[str] | None = None, workers: int = 1) -> DriveResult:
+                  bag_sha256: list[str] | None = None, workers: int = 1, overwrite: bool = False) -> DriveResult:
     """Run extract, fuse and dem-align for one drive (a picklable task for any executor),
     each stage on ``workers`` processes; the bags are hashed while extract reads them
-    unless ``bag_sha256`` gives the hashes."""
+    unless ``bag_sha256`` gives the hashes. A drive that fails leaves no folder it made."""
     folder = Path(work) / name
+    made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
     (folder / DONE).unlink(missing_ok=True)
     res = DriveResult(name, ok=False, workers=workers)
     try:
         t = time.perf_counter()
-        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=workers, bag_sha256=bag_sha256)
+        ex = run_extract([Path(b) for b in bags], folder / "drive.zarr", cfg, workers=workers, bag_sha256=bag_sha256, overwrite=overwrite)
         res.seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
-        run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=workers)
+        run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=workers, overwrite=overwrite)
         res.seconds["fuse"] = time.perf_counter() - t
         t = time.perf_counter()
-        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=workers)
+        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=workers,
+                           overwrite=overwrite)
         res.seconds["dem-align"] = time.perf_counter() - t
     except GtgenError as err:
         res.error = f"{type(err).__name__}: {err}"
+        if made and not any(folder.iterdir()):
+            folder.rmdir()
         return res
     res.ok, res.samples, res.kept, res.bag_sha256 = True, ex.n_samples, al.n_kept, ex.bag_sha256
     res.rejected = {**ex.rejected, **al.rejected}
@@ -179,12 +186,16 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     """Build ``out/dataset.zarr`` from every drive in ``sources``; see the module docstring."""
     t0 = time.perf_counter()
     drives = find_drives(sources)
-    check_replace(out / "dataset.zarr", overwrite)
-    dems = _dems(drives, dem_dir, cfg)  # every drive's DEM checked before any work
+    if out.exists() and not out.is_dir():
+        raise GtgenError(f"output '{out}' is a file; gtgen build writes dataset.zarr and drives/ into a folder")
     work = out / "drives"
-    with lock(out / "build"):
+    for path in (out / "dataset.zarr", *(work / name / f for name in drives for f in UNIT_OUTPUTS)):
+        check_replace(path, overwrite)  # before any work: nothing of the user's is replaced
+    dems = _dems(drives, dem_dir, cfg)  # every drive's DEM checked before any work
+    made = [p for p in (work, *work.parents) if not p.exists()]
+    with lock(out / "build"), _remove_if_failed(made):
         work.mkdir(parents=True, exist_ok=True)
-        results, todo = _done_and_todo(drives, dems, work, cfg, workers, scheduler)
+        results, todo = _done_and_todo(drives, dems, work, cfg, workers, scheduler, overwrite)
         # drives run largest bags first, so that no worker is left with a long drive at the
         # end, and the dataset holds them in that same order: each is merged as soon as it and
         # all before it are done, so merging overlaps with the drives still running
@@ -215,6 +226,18 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
     return BuildResult(out, ordered, n, split, time.perf_counter() - t0)
 
 
+@contextlib.contextmanager
+def _remove_if_failed(made: list[Path]) -> Iterator[None]:
+    """Remove the folders ``made`` (deepest first) where still empty if the block fails."""
+    try:
+        yield
+    except BaseException:
+        for p in made:
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
+
+
 def _dems(drives: dict[str, list[Path]], dem_dir: Path | None, cfg: GtgenConfig) -> dict[str, tuple[Path, str]]:
     """Return each drive's DEM (``--dem``, else dem.dir, else dem/ beside its bags) and the
     fingerprint of every file its tiles read; a DEM that does not exist or holds no tile is
@@ -229,7 +252,7 @@ def _dems(drives: dict[str, list[Path]], dem_dir: Path | None, cfg: GtgenConfig)
 
 
 def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, tuple[Path, str]], work: Path, cfg: GtgenConfig, workers: int,
-                   scheduler: str | None) -> tuple[dict[str, DriveResult], list[tuple]]:
+                   scheduler: str | None, overwrite: bool = False) -> tuple[dict[str, DriveResult], list[tuple]]:
     """Return the units already done with the same inputs, and the tasks of the others.
     With fewer drives than workers (one long drive, say) each drive's stages run on the
     spare workers themselves, so no core idles; a Dask task stays one process."""
@@ -244,7 +267,7 @@ def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, tuple[Path, st
                 continue
         todo.append((name, [str(b) for b in bags], str(dems[name][0]), str(work), cfg, hashes))
     inner = 1 if scheduler else max(1, workers // max(len(todo), 1))
-    return done, [(*t, inner) for t in todo]
+    return done, [(*t, inner, overwrite) for t in todo]
 
 
 def _execute(todo: list[tuple], workers: int, scheduler: str | None):

@@ -17,9 +17,9 @@ from gtgen.config import GtgenConfig, load_config
 
 DATA = Path(__file__).parent / "data"
 SMALL = DATA / "small.yaml"
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
-if not REALDATA.is_dir():
-    REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+# shared/realdata beside the repo (/work/main) or beside the folder of worktrees (/work/wt/<branch>)
+REALDATA = next((p / "shared" / "realdata" for p in Path(__file__).resolve().parents[2:4] if (p / "shared" / "realdata").is_dir()),
+                Path(__file__).resolve().parents[2] / "shared" / "realdata")
 
 
 def small_config(**over) -> GtgenConfig:

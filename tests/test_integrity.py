@@ -57,6 +57,7 @@ DAMAGES = {
     "meta/t_ns shard deleted": lambda ds: _shard(ds, "meta/t_ns").unlink(),
     "image shards deleted": lambda ds: _all_shards(ds, "inputs/images"),
     "array metadata corrupt": lambda ds: (ds / "labels" / "micro" / "risk" / "zarr.json").write_text("{not json"),
+    "root metadata deleted": lambda ds: (ds / "zarr.json").unlink(),
 }
 
 
@@ -123,6 +124,22 @@ def test_the_error_names_the_array_and_its_samples(damaged):
             ds.grid("labels", "short", "elevation_m")[k]
 
 
+@pytest.mark.parametrize("name, array", [("bytes overwritten inside a shard", "labels/short/elevation_m"),
+                                         ("labels shard deleted", "labels/micro/elevation_m")])
+def test_the_python_apis_xarray_and_zarr_views_are_checked_too(damaged, name, array):
+    """Reads through users' own views (xarray, the zarr group) meet the same one-line error
+    as gtgen's readers: a chunk that does not decode as well as one that is missing."""
+    import gtgen
+
+    ds = gtgen.open_dataset(damaged[name])
+    group, _, layer = array.rpartition("/")
+    for read in (lambda: ds.xarray(group)[layer].values, lambda: ds.zarr[array][:]):
+        with pytest.raises(gtgen.GtgenError) as err:
+            read()
+        msg = str(err.value)
+        assert f"array '{array}' samples 16-31" in msg and "gtgen dem-align" in msg and "\n" not in msg, msg
+
+
 def test_training_on_a_damaged_dataset_stops(damaged, tmp_path):
     p = run_cli("train", damaged["image shards deleted"], "--run", tmp_path / "run", "--steps", "2", "-c", SMALL)
     assert p.returncode == 1
@@ -164,6 +181,9 @@ def test_a_store_without_its_manifest_or_with_a_stray_file(dataset, tmp_path):
     shutil.rmtree(ds / "gtgen_manifest")
     with pytest.raises(DamagedStoreError, match="record of what was written"):
         DatasetStore(ds)
+    p = run_cli("verify", ds)
+    line = _one_line(p)
+    assert p.returncode == 1 and "record of what was written" in line and line.count("is damaged") == 1, line
 
 
 def test_damaged_drive_and_fused_stores_stop_the_next_stage(drive_store, fused_store, tmp_path):
@@ -219,6 +239,62 @@ def test_export_geotiff_writes_into_a_folder_and_leaves_the_rest(dataset, tmp_pa
     assert tif.read_bytes() == b"the user's own raster"
     assert run_cli("export", "geotiff", dataset, "-o", qgis, "--overwrite").returncode == 0
     assert owned(tif)
+
+
+def test_train_eval_and_viz_refuse_the_users_files_before_any_work(dataset, tmp_path):
+    """train --run-dir into a folder of the user's: a file of a run's name there (its CSV
+    curves too, which carry no signature) stops the run before it writes anything;
+    --overwrite replaces it; a run folder gtgen wrote is its own to write again."""
+    import yaml
+
+    from test_train import SMALL_TRAIN
+
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    for name in ("train.csv", "ckpt.pt", "metrics.json"):
+        run = tmp_path / name.replace(".", "_")
+        run.mkdir()
+        (run / name).write_text("mine")
+        (run / "notes.txt").write_text("notes")
+        p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, cwd=tmp_path)
+        line = _one_line(p)
+        assert p.returncode == 1 and "--overwrite" in line and str(run / name) in line, line
+        assert sorted(x.name for x in run.iterdir()) == sorted([name, "notes.txt"])  # nothing written beside them
+        assert (run / name).read_text() == "mine"
+    run = tmp_path / "train_csv"
+    p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, "--overwrite", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert (run / "train.csv").read_text().startswith("step,") and owned(run / "ckpt.pt")
+    p = run_cli("train", dataset, "--steps", "1", "--run-dir", run, "-c", c, cwd=tmp_path)  # its own run folder now
+    assert p.returncode == 0, p.stderr
+    assert (run / "notes.txt").read_text() == "notes"
+    # eval and viz --ckpt refuse a file of the user's before they evaluate (no table printed)
+    mine = tmp_path / "mine.json"
+    mine.write_text("mine")
+    for cmd in (("eval", dataset, "--ckpt", run / "ckpt.pt", "--split", "all", "-o", mine),
+                ("viz", dataset, "-n", "1", "--ckpt", run / "ckpt.pt", "-o", mine)):
+        p = run_cli(*cmd, cwd=tmp_path)
+        assert p.returncode == 1 and "--overwrite" in _one_line(p) and p.stdout == "", (cmd, p.stdout)
+        assert mine.read_text() == "mine"
+    p = run_cli("eval", dataset, "--ckpt", run / "ckpt.pt", "--split", "all", "-o", mine, "--overwrite", cwd=tmp_path)
+    assert p.returncode == 0 and owned(mine), p.stderr
+
+
+def test_report_refuses_the_users_files_before_any_work(dataset, tmp_path):
+    """A user's report.json in the report folder: refused before any figure is written
+    there; a file as the report folder: one line naming it."""
+    qa = tmp_path / "qa"
+    qa.mkdir()
+    (qa / "report.json").write_text("mine")
+    p = run_cli("report", dataset, "-o", qa)
+    assert p.returncode == 1 and "--overwrite" in _one_line(p) and str(qa / "report.json") in p.stderr
+    assert [x.name for x in qa.iterdir()] == ["report.json"] and (qa / "report.json").read_text() == "mine"
+    afile = tmp_path / "a_file"
+    afile.write_text("mine")
+    p = run_cli("report", dataset, "-o", afile)
+    assert p.returncode == 1 and f"output '{afile}' is a file" in _one_line(p) and afile.read_text() == "mine"
+    p = run_cli("report", dataset, "-o", qa, "--overwrite")
+    assert p.returncode == 0 and owned(qa / "report.json"), p.stderr
 
 
 def test_a_rerun_replaces_its_own_outputs_and_overwrite_replaces_the_users(tmp_path):

@@ -105,3 +105,14 @@ def test_the_terrain_samples_its_tiles_with_the_one_bilinear_rule():
     rng = np.random.default_rng(1)
     u, v = rng.uniform(0, (n - 1) * TILE_RES_M, (2, 500))
     np.testing.assert_allclose(t.sample(u, v)[0], bilinear(g, u / TILE_RES_M, v / TILE_RES_M), atol=1e-4)
+
+
+def test_dataset_does_not_import_the_trainer():
+    """The dataset stage comes before training: gtgen/dataset/ imports nothing of gtgen.train
+    (users reach the torch view through gtgen.api, which imports it lazily)."""
+    found = []
+    for p in sorted((ROOT / "gtgen" / "dataset").rglob("*.py")):
+        for n in ast.walk(ast.parse(p.read_text())):
+            names = [a.name for a in n.names] if isinstance(n, ast.Import) else [n.module or ""] if isinstance(n, ast.ImportFrom) else []
+            found += [f"{p.relative_to(ROOT)}:{n.lineno}: {m}" for m in names if m == "gtgen.train" or m.startswith("gtgen.train.")]
+    assert not found, found

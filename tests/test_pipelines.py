@@ -254,3 +254,41 @@ def test_report_of_a_multi_drive_dataset_judges_each_drive_by_its_own_truth(pool
     assert c["kept"]["bad"] == 0 and c["kept"]["good"] > 0
     alone = build_report(pool_build / "drives" / "b" / "dataset.zarr", tmp_path / "rep_b")
     assert abs(alone.truth["short"]["obs_pc"]["elevation_mae_m"] - rep.truth["short"]["obs_pc"]["elevation_mae_m"]) < 0.1
+
+
+def test_build_replaces_only_what_gtgen_wrote_and_a_failed_build_leaves_nothing(drives, tmp_path):
+    def build(src: Path, out: Path, *more: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "gtgen", "build", str(src), "-o", str(out), "-c", str(SMALL), "--workers", "1", *more],
+                              capture_output=True, text=True)
+
+    def one_line(p: subprocess.CompletedProcess) -> str:
+        assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        return p.stderr.strip()
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "a").symlink_to(drives / "a")
+    afile = tmp_path / "a_file"
+    afile.write_text("mine")
+    p = build(src, afile)
+    assert p.returncode == 1 and f"output '{afile}' is a file" in one_line(p) and afile.read_text() == "mine"
+    # a file of the user's where a drive's store goes: refused before any drive runs; --overwrite reaches the drive's stages
+    out = tmp_path / "out"
+    mine = out / "drives" / "a" / "drive.zarr"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("mine")
+    p = build(src, out)
+    line = one_line(p)
+    assert p.returncode == 1 and str(mine) in line and "--overwrite" in line and "every drive failed" not in line, line
+    assert mine.read_text() == "mine" and sorted(x.name for x in out.rglob("*")) == ["a", "drive.zarr", "drives"]
+    p = build(src, out, "--overwrite")
+    assert p.returncode == 0, p.stderr
+    assert mine.is_dir() and (out / "dataset.zarr").is_dir()
+    # a build whose every drive fails leaves no folder behind
+    bad = tmp_path / "bad" / "z"
+    bad.mkdir(parents=True)
+    (bad / "drive.mcap").write_bytes((drives / "a" / "drive.mcap").read_bytes()[:300])
+    shutil.copytree(drives / "a" / "dem", bad / "dem")
+    p = build(bad.parent, tmp_path / "o2")
+    assert p.returncode == 1 and "every drive failed" in one_line(p)
+    assert not (tmp_path / "o2").exists()

@@ -110,6 +110,19 @@ def test_efficientnet_b0_has_torchvision_layout_and_loads_strictly(tmp_path):
             build_model(bad.train, bad)
 
 
+def test_weights_that_are_no_state_dict_say_so(tmp_path):
+    """A text file, or a whole pickled module, is no state dict: the error says what to save,
+    not torch's advice to load with weights_only=False."""
+    from gtgen.train.backbones import EfficientNetB0, load_backbone_weights
+
+    (tmp_path / "notes.pth").write_text("not weights")
+    torch.save(torch.nn.Linear(2, 2), tmp_path / "module.pth")
+    for name in ("notes.pth", "module.pth"):
+        with pytest.raises(TrainError, match="not a state dict of tensors saved by torch.save") as err:
+            load_backbone_weights(EfficientNetB0(), tmp_path / name)
+        assert "weights_only" not in str(err.value) and "\n" not in str(err.value)
+
+
 def test_bad_backbone_weights_through_the_cli_are_one_line(dataset, tmp_path):
     import yaml
 

@@ -283,3 +283,27 @@ def test_paper_faithful_config_holds_the_papers_choices():
     assert (tc.risk_loss, tc.elevation_beta_m, tc.mirror_p) == ("mse", tc.elevation_clip_m, 0.0)  # Smooth-L1's beta 1 on the +-1 scale
     assert (tc.batch_size, tc.steps, tc.lr, tc.image_backbone) == (6, 16000, 5e-4, "efficientnet_b0")
     assert (tc.alpha, tc.mu, tc.lam, tc.gamma) == (0.2, 2.0, 2.0, 5.0)
+
+
+class _Touch:
+    """A pickle that, loaded with Python's full unpickler, runs code (touches a file)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (Path.touch, (self.path,))
+
+
+def test_a_checkpoint_is_loaded_as_data_never_run(tmp_path):
+    """eval, viz and export take checkpoints from anywhere: one that would run code when
+    unpickled is refused without running it, and a folder is named as one."""
+    from gtgen.train.checkpoint import load_checkpoint
+
+    marker = tmp_path / "ran"
+    torch.save({"version": 5, "model": {}, "x": _Touch(marker)}, tmp_path / "evil.pt")
+    with pytest.raises(TrainError, match="cannot be read") as err:
+        load_checkpoint(tmp_path / "evil.pt")
+    assert not marker.exists() and "\n" not in str(err.value)
+    with pytest.raises(TrainError, match="is a folder, not a checkpoint file"):
+        load_checkpoint(tmp_path)

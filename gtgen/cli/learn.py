@@ -7,7 +7,7 @@ from typing import Any, Optional
 
 import typer
 
-from gtgen.cli.app import WORKSPACE, ConfigOpt, app, console, fmt, read_yaml, table
+from gtgen.cli.app import WORKSPACE, ConfigOpt, OverwriteOpt, app, console, fmt, read_yaml, table
 from gtgen.errors import GtgenError
 
 
@@ -20,6 +20,7 @@ def train_cmd(
     steps: Optional[int] = typer.Option(None, min=1, help="stop after this many more steps (the schedule keeps the preset's total)"),
     seeds: int = typer.Option(1, min=1, max=1000, help="train this many seeds (train.seed, +1, ...), one run folder each, one after the other"),
     device: Optional[str] = typer.Option(None, metavar="DEVICE", help="auto | cpu | cuda | cuda:N [default: train.device, auto: CUDA when present]"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Train M&M-lite on the dataset's train split: checkpoints (ckpt.pt, best.pt by val MAE),
@@ -47,7 +48,7 @@ def train_cmd(
         one = cfg.model_copy(update={"train": cfg.train.model_copy(update={"seed": seed})})
         base = run or Path("runs") / preset
         run_dir = base if seeds == 1 else base.with_name(f"{base.name}-seed{seed}")
-        res = train(dataset, run_dir, one, resume=resume, max_steps=steps, device=device)
+        res = train(dataset, run_dir, one, resume=resume, max_steps=steps, device=device, overwrite=overwrite)
         main = res.rank == 0
         tag = "" if seeds == 1 else f" (seed {seed})"
         if i == 0:
@@ -98,6 +99,7 @@ def eval_cmd(
     viz: Optional[int] = typer.Option(None, "--viz", metavar="SAMPLE", help="also draw this sample with the predictions (of the first checkpoint)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the (first) checkpoint]"),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda | cuda:N [default: auto, CUDA when present]"),
+    overwrite: bool = OverwriteOpt,
 ) -> None:
     """Paper-style tables: elevation MAE per region, risk MSE/P/R/F1, consistency; baselines.
 
@@ -120,6 +122,12 @@ def eval_cmd(
     if split not in ("val", "train", "all"):
         raise GtgenError(f"--split {split!r} unknown; expected one of ['val', 'train', 'all']")
     ckpts = _checkpoints(ckpt)
+    out = out or ckpts[0].parent / "eval.json"
+    png = ckpts[0].parent / f"pred_{viz}.png"
+    from gtgen.runtime.output import check_replace, write_json
+
+    for path in (out, *([png] if viz is not None else [])):
+        check_replace(path, overwrite)  # before the evaluation
     sp = None if split == "all" else split
     res = evaluate(dataset, ckpts[0], preset, sp, device) if len(ckpts) == 1 else evaluate_seeds(dataset, ckpts, sp, device)
     if preset is not None and len(ckpts) > 1 and res["preset"] != preset:
@@ -139,10 +147,7 @@ def eval_cmd(
         for m, tab in res["risk"][r].items():
             t.add_row(EVAL_ROWS[m], *(_cell(res, ("risk", r, m, k)) for k in ("mse", "precision", "recall", "f1")), fmt(tab["coverage_pct"], True))
         con.print(t)
-    out = out or ckpts[0].parent / "eval.json"
-    from gtgen.runtime.output import write_json
-
-    write_json(out, res, indent=1)
+    write_json(out, res, overwrite, indent=1)
     cons = f"{_cell(res, ('consistency_mae_m',))} m" if res["consistency_mae_m"] is not None else "n/a (one range)"
     rows: list[tuple[str, Any]] = [("consistency MAE", cons),
                                    ("device", f"{res['device']}, {1000 * res['seconds_per_sample']:.1f} ms per sample"), ("metrics", out)]
@@ -150,8 +155,7 @@ def eval_cmd(
         from gtgen.train.trainer import predict_sample
         from gtgen.viz import render_sample
 
-        png = render_sample(dataset, viz, ckpts[0].parent / f"pred_{viz}.png", predict_sample(dataset, ckpts[0], viz, device))
-        rows.append(("prediction figure", png))
+        rows.append(("prediction figure", render_sample(dataset, viz, png, predict_sample(dataset, ckpts[0], viz, device), overwrite)))
     table("gtgen eval", rows)
 
 

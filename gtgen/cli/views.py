@@ -96,8 +96,10 @@ def viz(
     gtgen viz -n 12 --ckpt runs/latest/best.pt -o pred12.png
     ```
     """
+    from gtgen.runtime.output import check_replace
     from gtgen.viz import render_sample
 
+    check_replace(out, overwrite)  # before the prediction
     pred = None
     if ckpt is not None:
         from gtgen.train.trainer import predict_sample

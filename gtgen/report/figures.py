@@ -12,6 +12,9 @@ from gtgen.report.stats import REGIONS
 from gtgen.runtime.output import save_figure
 from gtgen.storage.dataset import DatasetStore
 
+OVERVIEW_PNG, TRACK_PNG, LABEL_ERROR_PNG, SIGNALS_PNG = "qa_overview.png", "qa_track.png", "qa_label_error.png", "qa_rejection_signals.png"
+FIGURES = (OVERVIEW_PNG, TRACK_PNG, LABEL_ERROR_PNG, SIGNALS_PNG)  # every figure the report may write
+
 
 def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwrite: bool = False) -> list[Path]:
     import matplotlib
@@ -43,7 +46,7 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
     ax[2].set_ylabel("samples")
     ax[2].tick_params(axis="x", rotation=30)
     fig.tight_layout()
-    paths.append(save_figure(fig, out_dir / "qa_overview.png", overwrite))
+    paths.append(save_figure(fig, out_dir / OVERVIEW_PNG, overwrite))
     plt.close(fig)
     if rep.card["samples_kept"]:
         en = ds.meta("crs_en_m")
@@ -61,7 +64,7 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
         ax.set_title("sample positions, colour = ICP fitness")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="ICP fitness [0..1]")
         fig.tight_layout()
-        paths.append(save_figure(fig, out_dir / "qa_track.png", overwrite))
+        paths.append(save_figure(fig, out_dir / TRACK_PNG, overwrite))
         plt.close(fig)
     if rep.truth.get("micro"):
         fig, ax = plt.subplots(figsize=(7, 4))
@@ -73,7 +76,7 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
         ax.set_ylabel("elevation MAE vs truth [m]")
         ax.set_title("label error against synth truth")
         ax.legend(title="range")
-        paths.append(save_figure(fig, out_dir / "qa_label_error.png", overwrite))
+        paths.append(save_figure(fig, out_dir / LABEL_ERROR_PNG, overwrite))
         plt.close(fig)
     return paths
 
@@ -114,7 +117,7 @@ def signal_figure(ds: DatasetStore, dem_cfg, out_dir: Path, overwrite: bool = Fa
         ax.legend(fontsize=7)
     fig.suptitle("rejection signals of every sample ICP ran on")
     fig.tight_layout()
-    p = save_figure(fig, out_dir / "qa_rejection_signals.png", overwrite)
+    p = save_figure(fig, out_dir / SIGNALS_PNG, overwrite)
     plt.close(fig)
     return p
 

@@ -9,12 +9,15 @@ import numpy as np
 
 from gtgen import codes
 from gtgen.config import RANGES
-from gtgen.report.figures import figures, signal_figure
+from gtgen.errors import GtgenError
+from gtgen.report.figures import FIGURES, figures, signal_figure
 from gtgen.report.labels import LabelErrors
 from gtgen.report.rejections import rejection_truth
 from gtgen.report.stats import quantiles
-from gtgen.runtime.output import write_json
+from gtgen.runtime.output import check_replace, write_json
 from gtgen.storage.dataset import DatasetStore
+
+REPORT_JSON = "report.json"
 
 
 @dataclass
@@ -47,6 +50,10 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     truth (``truth/`` beside its bags), over at most ``max_truth_samples`` samples in all."""
     from gtgen.synth.truth import Truth
 
+    if out_dir.exists() and not out_dir.is_dir():
+        raise GtgenError(f"output '{out_dir}' is a file; the report writes report.json and its figures into a folder")
+    for name in (*FIGURES, REPORT_JSON):  # before any work: nothing of the user's is replaced
+        check_replace(out_dir / name, overwrite)
     ds = DatasetStore(dataset)
     S = ds.n_samples
     rep = Report()
@@ -79,5 +86,5 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     if truths:
         rep.truth["rejections"] = rejection_truth(ds, cfg, truths)
     rep.figures = figures(ds, rep, out_dir, fit, rfit, rej_reason, overwrite) + [signal_figure(ds, cfg.dem, out_dir, overwrite)]
-    write_json(out_dir / "report.json", {"card": rep.card, "truth": rep.truth}, overwrite, indent=2, default=float)
+    write_json(out_dir / REPORT_JSON, {"card": rep.card, "truth": rep.truth}, overwrite, indent=2, default=float)
     return rep

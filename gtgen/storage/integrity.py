@@ -41,7 +41,12 @@ def rows_text(noun: str, a: int, b: int) -> str:
 
 
 class DamagedStoreError(StoreError):
-    """A store's data is missing or changed since it was written."""
+    """A store's data is missing or changed since it was written; ``what`` says what, without
+    the store's name and the command that rebuilds it."""
+
+    def __init__(self, message: str, what: str = "") -> None:
+        super().__init__(message)
+        self.what = what or message
 
 
 def crc32c(data: bytes) -> int:
@@ -88,7 +93,7 @@ class Where:
     def damaged(self, what: str) -> DamagedStoreError:
         """Return the error for damaged data ``what`` in this store."""
         return DamagedStoreError(f"{self.name} store '{self.path}' is damaged: {what}; rebuild it with '{self.made_by}' "
-                                 f"(check it whole with 'gtgen verify {self.path}')")
+                                 f"(check it whole with 'gtgen verify {self.path}')", what)
 
 
 class Manifest:

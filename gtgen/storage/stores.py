@@ -6,7 +6,9 @@ which validates its kind, version and completeness and reads its manifest
 (``storage/integrity.py``). Every read goes through :class:`Store`: zarr reads through a
 :class:`CheckedStore`, the fast chunk and shard readers with the manifest's check, and
 any failure to read or decode becomes one :class:`~gtgen.storage.integrity.DamagedStoreError`
-line naming the array, its rows and the command that rebuilds the store. Stages ask the
+line naming the array, its rows and the command that rebuilds the store (zarr decodes the
+checked store's chunks through a pipeline that says so, so users' xarray and zarr views of
+it meet the same line). Stages ask the
 accessors for poses, maps, samples and labels by name; no stage outside ``storage/``
 opens a zarr group or spells an array path.
 
@@ -27,7 +29,7 @@ from numpy.typing import NDArray
 from gtgen.errors import GtgenError, StoreError
 from gtgen.runtime.output import partial_path
 from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
-from gtgen.storage.integrity import MANIFEST, DamagedStoreError, Manifest, Where, rows_text, write_manifest
+from gtgen.storage.integrity import MANIFEST, METADATA, DamagedStoreError, Manifest, Where, rows_text, write_manifest
 from gtgen.storage.schema import StoreFormat
 from gtgen.storage.shards import SampleReader
 from gtgen.storage.specs import ArraySpec, dimension_names
@@ -44,6 +46,9 @@ def store_attrs(fmt: StoreFormat, **attrs: Any) -> dict[str, Any]:
 
 
 def _checked_store_class() -> type:
+    import zarr
+    from zarr.core.codec_pipeline import BatchedCodecPipeline
+    from zarr.registry import fully_qualified_name, register_pipeline
     from zarr.storage import LocalStore
 
     class CheckedStore(LocalStore):
@@ -66,6 +71,32 @@ def _checked_store_class() -> type:
         def __reduce__(self) -> tuple:
             return (_reopen_checked, (str(self.root), self.manifest.where))
 
+    class CheckedPipeline(BatchedCodecPipeline):
+        """zarr's own codec pipeline, except that a chunk of a CheckedStore that does not
+        decode (its zstd checksum, its shard index's CRC32C) is the DamagedStoreError naming
+        its array and rows, for every zarr read of the store: xarray's, the group's."""
+
+        async def read(self, batch_info: Any, out: Any, drop_axes: tuple[int, ...] = ()) -> None:
+            batch_info = list(batch_info)
+            try:
+                await super().read(batch_info, out, drop_axes)
+            except GtgenError:
+                raise
+            except Exception:  # noqa: BLE001 - zstd and the index check raise several kinds
+                store = getattr(batch_info[0][0], "store", None) if batch_info else None  # a shard's inner chunks have none
+                if not isinstance(store, CheckedStore):
+                    raise
+                for item in batch_info:  # which chunk file it was
+                    try:
+                        await super().read([item], out, drop_axes)
+                    except Exception as one:  # noqa: BLE001 - zstd and the index check raise several kinds
+                        raise store.manifest.damaged_chunk(item[0].path, f"does not decode ({type(one).__name__}: {one})".splitlines()[0]) from one
+                raise
+
+    # the default pipeline's place, unless the user chose another one (zarrs, say)
+    if zarr.config.get("codec_pipeline.path") == fully_qualified_name(BatchedCodecPipeline):
+        register_pipeline(CheckedPipeline)
+        zarr.config.set({"codec_pipeline.path": fully_qualified_name(CheckedPipeline)})
     return CheckedStore
 
 
@@ -100,6 +131,8 @@ def complete_attrs(path: Path, fmt: StoreFormat) -> dict[str, Any]:
     try:
         attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     except Exception as err:  # noqa: BLE001 - zarr raises several types for non-stores
+        if (path / MANIFEST).is_dir():  # a store gtgen completed, whose root metadata went missing
+            raise Where(name, path, fmt.made_by).damaged(f"its root metadata '{METADATA}' is missing or unreadable") from err
         raise StoreError(f"'{path}' is not a zarr store: {err}".splitlines()[0]) from err
     if attrs.get("store") != fmt.kind:
         raise StoreError(f"'{path}' is not a gtgen {name} store (store={attrs.get('store')!r}, expected {fmt.kind!r})")
@@ -303,6 +336,21 @@ class StoreWriter:
         write_manifest(self.path)
 
 
+def _kind_by_manifest(path: Path) -> str | None:
+    """Return the kind of the store whose manifest at ``path`` lists the most arrays of that
+    kind's format (None without a readable manifest)."""
+    from gtgen.storage.schema import FORMATS
+
+    try:
+        doc = json.loads((path / MANIFEST / METADATA).read_text())["attributes"]["gtgen_manifest"]
+        arrays = {k.rsplit("/", 1)[0] for k in doc["metadata"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    overlap = {kind: len(arrays & {s.path for s in fmt.arrays}) for kind, fmt in FORMATS.items()}
+    best = max(overlap, key=overlap.__getitem__)
+    return best if overlap[best] else None
+
+
 def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
     """Check the store at ``path`` whole (any gtgen kind): every file the manifest lists,
     every metadata checksum, every chunk decoded. Return (its format, files listed,
@@ -311,16 +359,19 @@ def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
     from gtgen.storage.schema import FORMATS
 
     try:
-        kind = json.loads((Path(path) / "zarr.json").read_text()).get("attributes", {}).get("store")
+        kind = json.loads((Path(path) / METADATA).read_text()).get("attributes", {}).get("store")
     except (OSError, ValueError, AttributeError) as err:
-        raise StoreError(f"'{path}' is not a gtgen store (no readable zarr.json)") from err
+        kind = _kind_by_manifest(Path(path))  # a completed store whose root metadata went missing: verify says so
+        if kind is None:
+            raise StoreError(f"'{path}' is not a gtgen store (no readable zarr.json)") from err
     fmt = FORMATS.get(kind)
     if fmt is None:
         raise StoreError(f"'{path}' is not a gtgen store (store={kind!r}; expected one of {sorted(FORMATS)})")
-    complete_attrs(Path(path), fmt)
+    if (Path(path) / METADATA).is_file():
+        complete_attrs(Path(path), fmt)
     where = Where(_name(fmt), Path(path), fmt.made_by)
     try:
         m = Manifest(Path(path), where)
         return fmt, len(m.files) + len(m.metadata), verify(Path(path), where)
     except DamagedStoreError as err:
-        return fmt, 0, [str(err)]
+        return fmt, 0, [err.what]

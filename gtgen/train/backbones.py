@@ -15,6 +15,7 @@ gradient). The paper's stages {5, 6, 8} are read as indices of torchvision's ``f
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import torch
@@ -140,6 +141,9 @@ def load_backbone_weights(net: EfficientNetB0, path: Path) -> None:
         raise TrainError(f"backbone weights '{path}' do not exist (no weights are downloaded; save torchvision's efficientnet_b0 state dict there)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:  # no torch file, or one of other objects than tensors (a pickled module)
+        raise TrainError(f"backbone weights '{path}' are not a state dict of tensors saved by torch.save; save torchvision's "
+                         "efficientnet_b0 weights as torch.save(model.state_dict(), path)") from err
     except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
         raise TrainError(f"backbone weights '{path}' cannot be read: {err}".splitlines()[0]) from err
     for wrapper in ("state_dict", "model"):  # training scripts often save {"model": state_dict}

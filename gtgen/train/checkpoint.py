@@ -36,25 +36,28 @@ def weights_digest(state: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def save_checkpoint(path: Path, payload: dict) -> None:
-    """Write ``payload`` (with its weights' digest added) to ``path`` atomically. It is
+def save_checkpoint(path: Path, payload: dict, overwrite: bool = False) -> None:
+    """Write ``payload`` (with its weights' digest added) to ``path`` atomically (a file
+    there that gtgen did not write only with ``overwrite``). It is
     serialised in memory first, so that a full disk is the atomic writer's one-line error
     (torch.save into a file reports it as a generic RuntimeError)."""
     # the signature first, near the file's start: a later save may replace it (runtime.output.owned)
     payload = {"written_by": signature(), **payload, "version": CKPT_VERSION, "model_sha256": weights_digest(payload["model"])}
     buf = io.BytesIO()
     torch.save(payload, buf)
-    write_atomic(path, buf.getbuffer())
+    write_atomic(path, buf.getbuffer(), overwrite)
 
 
 def load_checkpoint(path: Path, preset: str | None = None) -> tuple[dict, TrainConfig, GtgenConfig]:
     """Return a checkpoint's state with its validated train and data configs. Raises
     TrainError (one line) for a missing, unreadable, truncated or damaged file, another
     version, another preset than ``preset``, or configs this gtgen does not accept."""
+    if path.is_dir():
+        raise TrainError(f"checkpoint '{path}' is a folder, not a checkpoint file (ckpt.pt or best.pt in a run folder)")
     if not path.is_file():
         raise TrainError(f"checkpoint '{path}' does not exist")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+    try:  # as data only (tensors, numbers, strings): a file from elsewhere never runs code
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - torch raises many types for bad files
         raise TrainError(f"checkpoint '{path}' cannot be read (truncated or not a checkpoint): {err}".splitlines()[0]) from err
     if not isinstance(state, dict) or state.get("version") != CKPT_VERSION:

@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader
 from gtgen.config import GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from gtgen.grids import nearest_filled
-from gtgen.runtime.output import lock, remove, write_json
+from gtgen.runtime.output import check_replace, lock, owned, remove, write_json
 from gtgen.runtime.progress import track
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
@@ -49,6 +49,9 @@ EVAL_ROWS = {
 # the validation metric best.pt is chosen by (lower is better): the mean of the micro and
 # short elevation MAE (of the ranges the model predicts) over all labelled cells of the val split [m]
 BEST_METRIC = "total_mae_m"
+# the files a run writes in its folder (beside tb/, where TensorBoard only adds event files)
+RUN_FILES = ("gtgen-config.yaml", "ckpt.pt", "best.pt", "metrics.json", "train.csv", "val.csv")
+CONFIG_FILE = RUN_FILES[0]
 # the random streams of a step (with the seed and the step): the global batch's mirror and
 # pillar draws (the same on every process), and the model's own (stochastic depth), per process
 _MIRROR, _PILLARS, _MODEL = 1, 2, 3
@@ -142,27 +145,35 @@ def _check_steps(max_steps: int | None) -> None:
 
 
 def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, max_steps: int | None = None,
-          device: str | None = None) -> TrainResult:
+          device: str | None = None, overwrite: bool = False) -> TrainResult:
     """Train M&M-lite on the train split of ``dataset``; checkpoints, curves and metrics go
     to ``run_dir`` (locked while training, so a second run into it stops with a one-line
     error). ``device`` overrides ``train.device``. Under torchrun every process calls this;
-    rank 0 writes. A run that fails before its first checkpoint leaves no folder behind."""
+    rank 0 writes. A run that fails before its first checkpoint leaves no folder behind. A
+    file of a run's name in ``run_dir`` that gtgen did not write stops the run before any
+    work, unless ``overwrite``."""
     _check_steps(max_steps)
     tc = cfg.train if device is None else cfg.train.model_copy(update={"device": device})
     cfg = cfg.model_copy(update={"train": tc})
     procs = D.torchrun_env()
     dev = D.resolve_device(tc.device, procs)
     with D.process_group(procs, dev):
-        return _train(dataset, run_dir, cfg, resume, max_steps, procs, dev)
+        return _train(dataset, run_dir, cfg, resume, max_steps, procs, dev, overwrite)
 
 
 @contextlib.contextmanager
-def _run_folder(run_dir: Path, ckpt: Path) -> Iterator[None]:
+def _run_folder(run_dir: Path, ckpt: Path, overwrite: bool) -> Iterator[None]:
     """Hold the run folder's lock while the block runs (making the folder); if the block
-    fails before the run's first checkpoint, remove the folders it made."""
+    fails before the run's first checkpoint, remove the folders it made. A file of a run's
+    name there must be gtgen's (unless ``overwrite``): the signed ones by their signature,
+    the CSV curves by the signed config of the run they belong to."""
     made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]
     if run_dir.exists() and not run_dir.is_dir():
         raise TrainError(f"run folder '{run_dir}' is a file; choose another --run-dir")
+    ours = owned(run_dir / CONFIG_FILE)
+    for name in RUN_FILES:
+        if not (ours and name.endswith(".csv")):
+            check_replace(run_dir / name, overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
         with lock(run_dir):
@@ -189,7 +200,7 @@ def _datasets(dataset: Path, tc: TrainConfig) -> tuple[ShardDataset, ShardDatase
 
 
 def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_steps: int | None,
-           procs: D.Processes, dev: torch.device) -> TrainResult:
+           procs: D.Processes, dev: torch.device, overwrite: bool) -> TrainResult:
     tc = cfg.train
     precision = D.resolve_precision(tc.precision, dev)
     seed_everything(tc.seed)
@@ -204,19 +215,21 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
                 stack.enter_context(lock(dataset, shared=True))
                 if resume and not ckpt_path.is_file():
                     raise TrainError(f"--resume: no checkpoint at '{ckpt_path}'")
-                stack.enter_context(_run_folder(run_dir, ckpt_path))
+                stack.enter_context(_run_folder(run_dir, ckpt_path, overwrite))
             except GtgenError as e:
                 if procs.world == 1:
                     raise
                 err = str(e)
         D.share_error(procs, err)
         state = load_checkpoint(ckpt_path, tc.preset)[0] if resume else None
-        return _fit(ds, val, model, counts, cfg, run_dir, state, max_steps, procs, dev, precision)
+        return _fit(ds, val, model, counts, cfg, run_dir, state, max_steps, procs, dev, precision, overwrite)
 
 
 def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict[str, int], cfg: GtgenConfig, run_dir: Path,
-         state: dict | None, max_steps: int | None, procs: D.Processes, dev: torch.device, precision: str) -> TrainResult:
-    """The training loop: every process steps, rank 0 logs, validates and checkpoints."""
+         state: dict | None, max_steps: int | None, procs: D.Processes, dev: torch.device, precision: str,
+         overwrite: bool) -> TrainResult:
+    """The training loop: every process steps, rank 0 logs, validates and checkpoints
+    (replacing the user's files of a run's name only with ``overwrite``)."""
     tc = cfg.train
     if tc.sync_batchnorm and procs.world > 1 and dev.type == "cuda":
         model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
@@ -243,7 +256,7 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
                         pin_memory=dev.type == "cuda", persistent_workers=tc.workers > 0)
     curves = None
     if procs.main:
-        save_config(cfg, run_dir / "gtgen-config.yaml")
+        save_config(cfg, run_dir / CONFIG_FILE, overwrite)
         from gtgen.train.curves import Curves
 
         curves = Curves(run_dir, step if state is not None else None)
@@ -288,10 +301,10 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
             if val is not None and (step % tc.val_every == 0 or step == end):
                 if procs.main:
                     best = _validate(model, val, tc, dev, precision, step, curves, best, run_dir / "best.pt",
-                                     lambda step=step, best=best: _payload(model, opt, sched, scaler, step, history, best, cfg, ds))
+                                     lambda step=step, best=best: _payload(model, opt, sched, scaler, step, history, best, cfg, ds), overwrite)
                 D.barrier(procs)
             if procs.main and (step % tc.ckpt_every == 0 or step == end):
-                save_checkpoint(run_dir / "ckpt.pt", _payload(model, opt, sched, scaler, step, history, best, cfg, ds))
+                save_checkpoint(run_dir / "ckpt.pt", _payload(model, opt, sched, scaler, step, history, best, cfg, ds), overwrite)
     finally:
         if curves is not None:
             curves.close()
@@ -307,7 +320,7 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
         write_json(run_dir / "metrics.json", {
             "history": history, "seconds": secs, "device": str(dev), "precision": precision, "processes": procs.world,
             "samples_per_s": res.samples_per_s, "data_wait_share": res.data_wait_share, "peak_memory_mib": peak,
-            "best": res.best, "best_metric": BEST_METRIC, "parameters": counts}, indent=1)
+            "best": res.best, "best_metric": BEST_METRIC, "parameters": counts}, overwrite, indent=1)
         _link_latest(run_dir)
     return res
 
@@ -364,7 +377,7 @@ def _augment(batch: dict, tc: TrainConfig, step: int, rank: int, global_batch: i
 
 
 def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.device, precision: str, step: int, curves, best: dict,
-              best_path: Path, payload) -> dict:
+              best_path: Path, payload, overwrite: bool) -> dict:
     """Validate on ``val``, log it, and save ``best.pt`` when ``BEST_METRIC`` improves;
     return the best so far."""
     model.eval()
@@ -385,7 +398,7 @@ def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.devi
         best = {"step": step, BEST_METRIC: metric}
         p = payload()
         p["best"] = best
-        save_checkpoint(best_path, p)
+        save_checkpoint(best_path, p, overwrite)
     return best
 
 
