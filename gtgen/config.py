@@ -313,6 +313,37 @@ class TrainConfig(_Model):
         return RANGES if self.ranges == "both" else (self.ranges,)
 
 
+class MappingConfig(_Model):
+    """Grid maps from raw lidar (``gtgen.mapping``): what a range's map is where no stack publishes one
+    (``topics.map_<range>: null``). Cells hold the points of the last ``memory_s``; the layers
+    follow the stack's semantics, so fuse reads them as it reads X-Racer's."""
+
+    rate_hz: float = Field(5.0, gt=0, le=100, description="maps made per range [Hz], at lidar sweep stamps")
+    memory_s: float = Field(10.0, gt=0, le=MAX_SPAN_S, description="a cell forgets points older than this [s] (odometry drifts)")
+    ground_band_m: float = Field(0.15, gt=0, description="a cell's ground is the mean of its points within this of its lowest point [m]: vegetation and overhangs above stay out")
+    min_points: int = Field(2, ge=1, description="ground points a cell needs before it has an elevation")
+    overhang_m: float = Field(2.5, gt=0, description="points higher than this above a cell's ground are overhangs (branches the vehicle passes under): not obstacles [m]")
+    body_x_m: tuple[float, float] = Field((-2.5, 2.5), description="the vehicle's own body along base x, masked out of every sweep [m]")
+    body_y_m: tuple[float, float] = Field((-1.2, 1.2), description="the vehicle's body along base y [m]")
+    body_z_m: tuple[float, float] = Field((-0.5, 2.5), description="the vehicle's body along base z [m]")
+    full_points: float = Field(4.0, gt=0, description="confidence from density is 1 - exp(-n / this) for n ground points")
+    range_half_m: float = Field(30.0, gt=0, description="confidence halves every this much range from the sensor at the closest view [m]")
+    age_half_s: float = Field(5.0, gt=0, description="confidence halves every this much age of a cell's latest point [s]")
+    clearance_m: float = Field(0.3, gt=0, description="ground clearance: stuff standing this high above the ground is an obstacle (risk 0.5 = fatal) [m]")
+    max_step_m: float = Field(0.3, gt=0, description="a ground step this high within neighbourhood_m is fatal [m]")
+    max_slope_deg: float = Field(30.0, gt=0, lt=90, description="a ground slope this steep is fatal [deg]")
+    max_roughness_m: float = Field(0.2, gt=0, description="ground roughness (std in neighbourhood_m) this large is fatal [m]")
+    neighbourhood_m: float = Field(0.6, gt=0, description="edge of the neighbourhood of step and roughness [m]")
+
+    @model_validator(mode="after")
+    def _body_box(self) -> MappingConfig:
+        for k in ("body_x_m", "body_y_m", "body_z_m"):
+            lo, hi = getattr(self, k)
+            if not lo < hi:
+                raise ValueError(f"mapping.{k} = ({lo}, {hi}): expected (low, high) with low < high")
+        return self
+
+
 class GtgenConfig(_Model):
     """Root configuration; every stage reads its own part."""
 
@@ -325,6 +356,7 @@ class GtgenConfig(_Model):
     shards: ShardsConfig = Field(default_factory=ShardsConfig)
     report: ReportConfig = Field(default_factory=ReportConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
 
 
 def configs_dir() -> Path:

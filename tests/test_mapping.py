@@ -1,0 +1,165 @@
+"""Grid maps from raw lidar (gtgen.mapping): the rolling cells against a naive per-sweep
+oracle, and the layers' semantics on scenes with known ground, obstacles and vegetation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtgen.config import GridSpec, GtgenConfig, MappingConfig
+from gtgen.mapping.cells import RollingCells
+from gtgen.mapping.mapper import Mapper
+
+
+def _cfg(**mapping) -> GtgenConfig:
+    cfg = GtgenConfig()
+    cfg.grids.micro = GridSpec(size=60, resolution_m=0.2)
+    cfg.grids.short = GridSpec(size=30, resolution_m=0.8)
+    cfg.mapping = MappingConfig(**mapping)
+    return cfg
+
+
+def _pose(x: float, y: float, z: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def naive_cells(sweeps, n: int, res: float, m: MappingConfig, t_ns: int, center) -> dict:
+    """The cell statistics by the rules of gtgen.mapping.cells, cell by cell and sweep by
+    sweep, in plain Python: the oracle of RollingCells."""
+    state: dict[tuple[int, int], dict] = {}
+    for pts, rng, c, t in sweeps:
+        k = np.floor(pts[:, :2] / res).astype(int)
+        x0, y0 = int(np.floor(c[0] / res)) - n // 2, int(np.floor(c[1] / res)) - n // 2
+        cells: dict[tuple[int, int], list[int]] = {}
+        for i, (kx, ky) in enumerate(k):
+            if x0 <= kx < x0 + n and y0 <= ky < y0 + n:
+                cells.setdefault((int(kx), int(ky)), []).append(i)
+        for key, idx in cells.items():
+            slot = (key[0] % n, key[1] % n)
+            s = state.get(slot)
+            if s is None or s["key"] != key or t - s["t"] > m.memory_s * 1e9:
+                s = {"key": key, "zmin": np.inf, "sum": 0.0, "n": 0, "top": -np.inf, "r": np.inf}
+            z = [float(pts[i, 2]) for i in idx]
+            low = min(z)
+            if low < s["zmin"] - m.ground_band_m or (low > s["zmin"] + m.ground_band_m and s["n"] < m.min_points):
+                s.update(zmin=low, sum=0.0, n=0, top=-np.inf)
+            else:
+                s["zmin"] = min(s["zmin"], low)
+            for zi in z:
+                if zi <= s["zmin"] + m.ground_band_m:
+                    s["sum"] += zi
+                    s["n"] += 1
+                if zi <= s["zmin"] + m.overhang_m:
+                    s["top"] = max(s["top"], zi)
+            s["r"] = min(s["r"], min(float(rng[i]) for i in idx))
+            s["t"] = t
+            state[slot] = s
+    x0, y0 = int(np.floor(center[0] / res)) - n // 2, int(np.floor(center[1] / res)) - n // 2
+    ground = np.full((n, n), np.nan)
+    count = np.zeros((n, n), int)
+    for i in range(n):
+        for j in range(n):
+            key = (x0 + i, y0 + j)
+            s = state.get((key[0] % n, key[1] % n))
+            if s is None or s["key"] != key or t_ns - s["t"] > m.memory_s * 1e9:
+                continue
+            if s["n"] >= m.min_points:
+                ground[i, j] = s["sum"] / s["n"]
+                count[i, j] = s["n"]
+    return {"ground": ground, "n": count}
+
+
+def test_rolling_cells_equal_the_naive_oracle_as_the_vehicle_drives_and_forgets():
+    rng = np.random.default_rng(3)
+    m = MappingConfig(memory_s=0.35, min_points=2)
+    n, res = 20, 0.5
+    cells = RollingCells(n, res, m)
+    sweeps = []
+    for s in range(8):  # 0.1 s apart, 1.5 m of travel each: the ring wraps and old cells expire
+        c = np.array([1.5 * s, 0.3 * s])
+        pts = np.column_stack([c + rng.uniform(-7, 7, (400, 2)), rng.normal(0, 0.1, 400) + (rng.random(400) < 0.2) * rng.uniform(0, 1.5, 400)])
+        r = rng.uniform(1, 30, 400).astype(np.float32)
+        t = s * 100_000_000
+        cells.add(pts, r, c, t)
+        sweeps.append((pts, r, c, t))
+    for center in (np.array([10.5, 2.1]), np.array([8.0, 1.0])):
+        got = cells.crop(center, n, sweeps[-1][3])
+        want = naive_cells(sweeps, n, res, m, sweeps[-1][3], center)
+        np.testing.assert_array_equal(got["n"], want["n"])
+        np.testing.assert_allclose(got["ground"], want["ground"], atol=1e-9)
+        assert np.isfinite(want["ground"]).sum() > 50  # the test sees cells, old ones forgotten
+        assert (want["n"] == 0).sum() > 50
+
+
+def _scene(rng, n_sweeps=5):
+    """Points of a flat ground at z = 0 with: a 0.6 m box (a rock) at x in [3, 4], a bush
+    0.8 m tall whose leaves let some beams through at x in [-4, -3], and branches 4 m up
+    at y in [3, 4] (an overhang); and the vehicle's own body."""
+    pts = []
+    for _ in range(n_sweeps):
+        g = np.column_stack([rng.uniform(-6, 6, (6000, 2)), rng.normal(0, 0.01, 6000)])
+        rock = g[:, 0] > 3
+        rock &= g[:, 0] < 4
+        g[rock, 2] += 0.6
+        bush = np.column_stack([rng.uniform(-4, -3, (800, 1)), rng.uniform(-1, 1, (800, 1)), rng.uniform(0, 0.8, (800, 1))])
+        branches = np.column_stack([rng.uniform(-6, 6, (500, 1)), rng.uniform(3, 4, (500, 1)), 4 + rng.normal(0, 0.05, (500, 1))])
+        body = np.column_stack([rng.uniform(-2, 2, (300, 1)), rng.uniform(-1, 1, (300, 1)), rng.uniform(0.5, 2, (300, 1))])
+        pts.append(np.vstack([g, bush, branches, body]))
+    return pts
+
+
+def test_layers_hold_ground_under_vegetation_and_flag_obstacles_not_overhangs():
+    cfg = _cfg()
+    mp = Mapper(cfg, ranges=("micro",))
+    rng = np.random.default_rng(0)
+    for s, pts in enumerate(_scene(rng)):
+        mp.add(pts, np.array([0.0, 0.0, 2.0]), _pose(0, 0), s * 100_000_000)
+    lay = mp.map("micro", np.zeros(2), 4 * 100_000_000)
+    c = -0.5 * 60 * 0.2 + (np.arange(60) + 0.5) * 0.2 + lay.center[0]
+    X, Y = np.meshgrid(c, c - lay.center[0] + lay.center[1], indexing="ij")
+    seen = np.isfinite(lay.elevation)
+    bare = seen & (np.abs(X) < 2.5) & (Y < -1.5) & (Y > -2.8)
+    rock = seen & (X > 3.3) & (X < 3.7) & (np.abs(Y) < 1)
+    bush = seen & (X > -3.8) & (X < -3.2) & (np.abs(Y) < 0.8)
+    under = seen & (Y > 3.2) & (Y < 3.8) & (np.abs(X) < 2)
+    body = (np.abs(X) < 1.8) & (np.abs(Y) < 0.8)
+    assert bare.sum() > 50 and rock.sum() > 5 and bush.sum() > 5 and under.sum() > 10
+    assert np.abs(lay.elevation[bare]).max() < 0.05
+    assert lay.risk[bare].max() < 0.5
+    assert np.abs(lay.elevation[rock] - 0.6).max() < 0.05  # the rock is ground, standing out as a step
+    assert lay.risk[(X > 2.9) & (X < 3.1) & (np.abs(Y) < 1) & seen].min() >= 0.5
+    assert np.abs(lay.elevation[bush]).max() < 0.1  # ground under the bush ...
+    assert np.median(lay.top[bush]) > 0.6 and lay.risk[bush].min() >= 0.5  # ... and the bush an obstacle
+    assert np.abs(lay.elevation[under]).max() < 0.05 and lay.risk[under].max() < 0.5  # branches overhead: no obstacle
+    assert np.isnan(lay.top[body]).all()  # the body's points are masked out (the ground under it with them)
+    assert lay.confidence.min() >= 0 and lay.confidence.max() <= 1
+    assert (lay.confidence[~seen] == 0).all() and np.isnan(lay.risk[~seen]).all()
+
+
+def test_confidence_falls_with_range_and_age():
+    cfg = _cfg()
+    mp = Mapper(cfg, ranges=("short",))
+    rng = np.random.default_rng(1)
+    g = np.column_stack([rng.uniform(-12, 12, (40000, 2)), np.zeros(40000)])
+    mp.add(g, np.array([0.0, 0.0, 2.0]), _pose(0, 0), 0)
+    fresh = mp.map("short", np.zeros(2), 0).confidence
+    old = mp.map("short", np.zeros(2), 4_000_000_000).confidence
+    c = -12 + (np.arange(30) + 0.5) * 0.8
+    r = np.hypot(*np.meshgrid(c, c, indexing="ij"))
+    near, far = fresh[(r > 3) & (r < 5)], fresh[(r > 9) & (r < 11)]
+    assert near.mean() > far.mean() > 0
+    assert np.all(old <= fresh) and old.max() < fresh.max() * 0.7
+
+
+def test_sweeps_out_of_order_are_refused():
+    mp = Mapper(_cfg(), ranges=("micro",))
+    mp.add(np.zeros((1, 3)) + 5, np.zeros(3), _pose(0, 0), 10)
+    with pytest.raises(ValueError, match="time order"):
+        mp.add(np.zeros((1, 3)) + 5, np.zeros(3), _pose(0, 0), 5)
+
+
+def test_body_box_must_be_low_below_high():
+    with pytest.raises(ValueError, match="body_x_m"):
+        MappingConfig(body_x_m=(1.0, -1.0))
