@@ -18,6 +18,8 @@ from gtgen.errors import ConfigError, InputNotFoundError
 
 RANGES = ("micro", "short")
 CAMERAS = ("front", "left", "right", "back")
+LIDARS = ("front", "front_tilted", "back")  # the synthetic drive's lidars (the paper's three VLP-32C)
+LIDAR_TOPICS = tuple(f"/lidar/{n}/points" for n in LIDARS)
 MAX_SPAN_S = 86_400.0  # longest time span a setting takes [s]: a day; stamps are int64 ns, and a window beyond any drive means nothing
 
 
@@ -75,25 +77,33 @@ def _default_cameras() -> dict[str, CameraTopics]:
 class TopicsConfig(_Model):
     """Topic -> role mapping; ``configs/xracer.yaml`` is the default."""
 
-    map_micro: str = Field("/xracer/map/micro", description="grid_map_msgs/GridMap, micro range")
-    map_short: str = Field("/xracer/map/short", description="grid_map_msgs/GridMap, short range")
+    map_micro: str | None = Field("/xracer/map/micro", description="grid_map_msgs/GridMap, micro range; null: made from the raw lidar scans (topics.lidar) by gtgen.mapping")
+    map_short: str | None = Field("/xracer/map/short", description="grid_map_msgs/GridMap, short range; null: made from the raw lidar scans (topics.lidar)")
     odometry: str | None = Field("/xracer/odometry", description="nav_msgs/Odometry odom -> base; null: poses from TF odom_frame -> base_frame")
     tf: str = Field("/tf", description="tf2_msgs/TFMessage (or tf/tfMessage): moving frames")
     tf_static: str = Field("/tf_static", description="tf2_msgs/TFMessage, latched extrinsics")
     gnss: str = Field("/gnss/fix", description="sensor_msgs/NavSatFix")
     cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras)
-    voxel_map: str = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2")
+    voxel_map: str | None = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2; null: made from the raw lidar scans (topics.lidar)")
+    lidar: list[str] = Field(default_factory=lambda: list(LIDAR_TOPICS), description="sensor_msgs/PointCloud2 raw scans, one topic per lidar in any frame TF connects to odom (optional: topics not in the bags are skipped; the N-scan input of Tab. III)")
     odom_frame: str = Field("odom", description="frame the drive is stored in (maps, voxel maps and poses are put in it through TF)")
     base_frame: str = Field("base_link", description="vehicle base frame")
     layers: LayersConfig = Field(default_factory=LayersConfig)
 
-    def map_topic(self, rng: str) -> str:
-        """Return the GridMap topic of range ``rng``."""
+    def map_topic(self, rng: str) -> str | None:
+        """Return the GridMap topic of range ``rng`` (None: the map is made from lidar)."""
         return self.map_micro if rng == "micro" else self.map_short
+
+    def from_lidar(self) -> list[str]:
+        """Return what gtgen.mapping makes from the raw scans: the ranges whose map topic is
+        null, and 'voxel_map' if its topic is."""
+        return [r for r in ("micro", "short") if self.map_topic(r) is None] + (["voxel_map"] if self.voxel_map is None else [])
 
     def roles(self) -> dict[str, str]:
         """Return {config key: topic} of every topic-valued key (tf topics excluded)."""
-        out = {"map_micro": self.map_micro, "map_short": self.map_short, "gnss": self.gnss, "voxel_map": self.voxel_map}
+        out = {k: t for k, t in (("map_micro", self.map_micro), ("map_short", self.map_short), ("gnss", self.gnss),
+                                 ("voxel_map", self.voxel_map)) if t is not None}
+        out.update({f"lidar[{i}]": t for i, t in enumerate(self.lidar)})
         if self.odometry is not None:
             out["odometry"] = self.odometry
         for c, ct in self.cameras.items():
@@ -334,6 +344,7 @@ class MappingConfig(_Model):
     max_slope_deg: float = Field(30.0, gt=0, lt=90, description="a ground slope this steep is fatal [deg]")
     max_roughness_m: float = Field(0.2, gt=0, description="ground roughness (std in neighbourhood_m) this large is fatal [m]")
     neighbourhood_m: float = Field(0.6, gt=0, description="edge of the neighbourhood of step and roughness [m]")
+    voxel_m: float = Field(0.4, gt=0, description="voxel edge of the voxel map made from lidar (topics.voxel_map: null) [m]; it holds the voxels seen in the last memory_s within the short grid")
 
     @model_validator(mode="after")
     def _body_box(self) -> MappingConfig:

@@ -163,3 +163,59 @@ def test_sweeps_out_of_order_are_refused():
 def test_body_box_must_be_low_below_high():
     with pytest.raises(ValueError, match="body_x_m"):
         MappingConfig(body_x_m=(1.0, -1.0))
+
+
+@pytest.fixture(scope="module")
+def lidar_only_bag(drive_dir, tmp_path_factory):
+    """The small drive as a robot without a stack records it: its lidar's points (the stack's
+    voxel map stands in for the sweeps here, in odom, which TF connects) on a raw-scan
+    topic, and no GridMaps or voxel map."""
+    from bagtools import rewrite
+
+    def edit(topic, t, msg):
+        if topic.startswith("/xracer/map/"):
+            return []
+        if topic == "/xracer/voxel_map":
+            return [(t, msg)]
+        return [(t, msg)]
+
+    out = tmp_path_factory.mktemp("lidar_only") / "drive.mcap"
+    rewrite(drive_dir / "drive.mcap", out, edit)
+    return out
+
+
+def _lidar_cfg(cfg):
+    c = cfg.model_copy(deep=True)
+    c.topics.map_micro = None
+    c.topics.map_short = None
+    c.topics.voxel_map = None
+    c.topics.lidar = ["/xracer/voxel_map"]
+    return c
+
+
+def test_extract_maps_from_lidar_when_no_stack_publishes_maps(lidar_only_bag, drive_store, cfg, tmp_path):
+    from gtgen.extract import run_extract
+    from gtgen.storage.drive import DriveStore
+
+    c = _lidar_cfg(cfg)
+    res = run_extract([lidar_only_bag], tmp_path / "drive.zarr", c, workers=1)
+    assert res.n_samples > 0
+    got, ref = DriveStore(tmp_path / "drive.zarr"), DriveStore(drive_store)
+    assert got.n_samples >= 0.8 * ref.n_samples
+    for r in ("micro", "short"):
+        m = got.maps(r)
+        assert len(m) > 0
+        e, risk, conf = m.layers(len(m) // 2)
+        assert np.isfinite(e).mean() > 0.05 and 0 <= np.nanmin(risk) and np.nanmax(risk) <= 1
+        assert conf.min() >= 0 and conf.max() <= 1
+    assert (got.voxel_counts() > 0).mean() > 0.9  # a sample before the first sweeps has an empty voxel map
+
+
+def test_a_lidar_made_map_needs_a_raw_scan_topic(drive_dir, cfg, tmp_path):
+    from gtgen.errors import TopicError
+    from gtgen.extract import run_extract
+
+    c = _lidar_cfg(cfg)
+    c.topics.lidar = ["/no/such/points"]
+    with pytest.raises(TopicError, match=r"topics.map_micro, topics.map_short, topics.voxel_map null .*PointCloud2 topics found: \['/xracer/voxel_map'\]"):
+        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", c, workers=1)

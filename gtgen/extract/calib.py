@@ -90,6 +90,8 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
     tp = cfg.topics
     topic_of = {s.role: s for s in scan.stats.values()}
     for role, meta in scan.map_meta.items():
+        if role not in topic_of:  # no topic: made from lidar later (gtgen.extract.mapped)
+            continue
         t = np.array([m[0] for m in meta], np.int64)
         frames = [m[2] for m in meta]
         ok = _known(tf, tp.odom_frame, frames, t) | (t < 0)
@@ -97,6 +99,8 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
         scan.map_meta[role] = [(m[0], m[1] and bool(k), *m[2:]) for m, k in zip(meta, ok)]
     for role, frames, target in [("voxel_map", scan.voxel_frames, tp.odom_frame)] + \
             [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS]:
+        if role not in topic_of:
+            continue
         t = np.asarray(scan.stamps[role], np.int64)
         ok = _known(tf, target, frames, t) | (t < 0)
         topic_of[role].drop(NO_TRANSFORM, int((~ok).sum()))

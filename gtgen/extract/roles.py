@@ -10,13 +10,14 @@ TYPES = {
     "odometry": ("nav_msgs/msg/Odometry",),
     "gnss": ("sensor_msgs/msg/NavSatFix",),
     "voxel_map": ("sensor_msgs/msg/PointCloud2",),
+    "lidar": ("sensor_msgs/msg/PointCloud2",),
     "image": ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
     "info": ("sensor_msgs/msg/CameraInfo",),
     "tf": ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"),
     "map": ("grid_map_msgs/msg/GridMap",),
 }
 
-LARGE = ("camera.", "map.", "voxel_map")  # roles whose messages are staged or read again
+LARGE = ("camera.", "map.", "voxel_map", "lidar.")  # roles whose messages are staged or read again (or mapped)
 
 
 def is_large(role: str) -> bool:
@@ -39,10 +40,14 @@ def resolve_roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, s
     tp = cfg.topics
     roles: dict[str, str] = {}
     for r in RANGES:
-        _require(topics, f"map.{r}", tp.map_topic(r), "map")
-        roles[tp.map_topic(r)] = f"map.{r}"
-    _require(topics, "voxel_map", tp.voxel_map, "voxel_map")
-    roles[tp.voxel_map] = "voxel_map"
+        topic = tp.map_topic(r)
+        if topic is not None:
+            _require(topics, f"map.{r}", topic, "map")
+            roles[topic] = f"map.{r}"
+    if tp.voxel_map is not None:
+        _require(topics, "voxel_map", tp.voxel_map, "voxel_map")
+        roles[tp.voxel_map] = "voxel_map"
+    mapping_topics(cfg, topics)  # checks the raw scans are there when maps are made from them
     for c in CAMERAS:
         _require(topics, f"camera.{c}", tp.cameras[c].image, "image")
         _require(topics, f"camera_info.{c}", tp.cameras[c].info, "info")
@@ -69,3 +74,21 @@ def resolve_roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, s
         _require(topics, "gnss", tp.gnss, "gnss")
         roles[tp.gnss] = "gnss"
     return roles
+
+
+def mapping_topics(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> list[str]:
+    """Return the raw-scan topics (``topics.lidar``) the bags hold when some map is made from
+    lidar (``topics.from_lidar()``), raising if there is none; [] when no map is."""
+    made = cfg.topics.from_lidar()
+    if not made:
+        return []
+    held = [t for t in cfg.topics.lidar if t in topics]
+    for i, t in enumerate(cfg.topics.lidar):
+        if t in held:
+            _require(topics, f"lidar[{i}]", t, "lidar")
+    if not held:
+        cands = sorted(t for t, i in topics.items() if i.msgtype in TYPES["lidar"])
+        what = ", ".join(f"topics.{'map_' + m if m != 'voxel_map' else m}" for m in made)
+        raise TopicError(f"{what} null (made from lidar), but none of topics.lidar {cfg.topics.lidar} is in the bags; "
+                         f"PointCloud2 topics found: {cands}")
+    return held

@@ -17,8 +17,8 @@ from gtgen import __version__, codes
 from gtgen.bag.reader import BagSet, hash_bag
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError
-from gtgen.extract import calib
-from gtgen.extract.roles import resolve_roles
+from gtgen.extract import calib, mapped
+from gtgen.extract.roles import mapping_topics, resolve_roles
 from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
@@ -65,27 +65,32 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
     with stage_output(out, overwrite=overwrite) as tmp, Pool(workers, warm=import_readers) as pool, \
             ThreadPoolExecutor(max_workers=1) as hasher:  # hashing releases the GIL: it overlaps the read
-        roles, bounds, frames = _open(paths, cfg, workers, n_slices)
+        roles, bounds, frames, lidar = _open(paths, cfg, workers, n_slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []
         w = DriveWriter(tmp)  # before the read: the slices stage into it
         scan, parts = _read(pool, paths, cfg, roles, frames, bounds, tmp if staging else None)
         tf = calib.tf_buffer(cfg, scan)
         track, poses, warnings = calib.pose_track(cfg, scan, tf)
         calib.drop_untransformable(cfg, scan, tf)
+        mapped.declare(cfg, scan)
         plan = _plan(cfg, track, scan)
         write_small(w, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
-        reread = write_large(w, paths, cfg, roles, scan, tf, plan, parts, pool)
+        reread = write_large(w, paths, cfg, roles, scan, tf, track, plan, parts, pool, lidar)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
         result.poses = poses
         _finish(w, paths, cfg, result)
     return result
 
 
-def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list, Frames]:
-    """Open the bags once: the roles of their topics, the read's slices, the static frames."""
+def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list, Frames, list[str]]:
+    """Open the bags once: the roles of their topics, the read's slices, the static frames,
+    and the raw-scan topics the mapping reads (none when every map comes from the bags)."""
     with BagSet(paths) as bags:
-        roles = resolve_roles(cfg, bags.topics())
-        return roles, slices(bags, workers, n_slices), prepass(bags, cfg, roles)
+        topics = bags.topics()
+        roles = resolve_roles(cfg, topics)
+        lidar = mapping_topics(cfg, topics)
+        frames = prepass(bags, cfg, {**roles, **dict.fromkeys(lidar, "lidar.map")})
+        return roles, slices(bags, workers, n_slices), frames, lidar
 
 
 def _read(pool: Pool, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frames: Frames, bounds: list,

@@ -21,6 +21,7 @@ from gtgen.bag.reader import BagSet
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
+from gtgen.extract import mapped
 from gtgen.extract.calib import map_to_odom
 from gtgen.extract.roles import is_large
 from gtgen.extract.scan import Scan
@@ -122,9 +123,11 @@ class _Large:
                     self.missing[role][o] = targets
                     continue
                 self.w.place_image(stg.chunk(role, i), c_i, targets)
+        made = self.cfg.topics.from_lidar()  # made by the mapping pass, not read
         for r in RANGES:
-            self._place_maps(r, want[f"map.{r}"])
-        for o, targets in want["voxel_map"].items():
+            if r not in made:
+                self._place_maps(r, want[f"map.{r}"])
+        for o, targets in (want["voxel_map"] if "voxel_map" not in made else {}).items():
             stg, i = self.slices.locate("voxel_map", o)
             got = stg.voxels.get(i) if stg else None
             if got is None:
@@ -184,13 +187,20 @@ class _Large:
 
 
 def write_large(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
-                tf: TfBuffer, plan: Plan, slices: Slices, pool: Pool) -> int:
-    """Put the plan's images, maps and voxel clouds in the store; return how many kept
-    messages no slice had staged (read in a second pass)."""
+                tf: TfBuffer, track: PoseTrack, plan: Plan, slices: Slices, pool: Pool, lidar: list[str]) -> int:
+    """Put the plan's images, maps and voxel clouds in the store (the ones made from the raw
+    scans on ``lidar`` by the mapping pass); return how many kept messages no slice had
+    staged (read in a second pass)."""
     large = _Large(w, cfg, scan, plan, slices, tf)
     large.create_arrays()
     large.place_staged(_wanted(plan))
     reread = large.read_missing(pool, paths, roles)
+    if cfg.topics.from_lidar():
+        centers, n_points = mapped.map_pass(w, paths, cfg, lidar, tf, track, plan, pool)
+        for r, c in centers.items():
+            large.centers[r] = c
+        if "voxel_map" in cfg.topics.from_lidar():
+            large.n_points = n_points
     large.finish()
     return reread
 

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.mapping.cells import RollingCells
 from gtgen.mapping.layers import MapLayers, layers
+from gtgen.mapping.voxels import VoxelMemory
 
 
 def body_mask(points_base: NDArray, cfg: GtgenConfig) -> NDArray[np.bool_]:
@@ -29,9 +30,11 @@ def body_mask(points_base: NDArray, cfg: GtgenConfig) -> NDArray[np.bool_]:
 class Mapper:
     """The rolling cells of every range, fed sweep by sweep."""
 
-    def __init__(self, cfg: GtgenConfig, ranges: tuple[str, ...] = RANGES) -> None:
+    def __init__(self, cfg: GtgenConfig, ranges: tuple[str, ...] = RANGES, voxels: bool = False) -> None:
         self.cfg = cfg
         self.cells = {r: RollingCells(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m, cfg.mapping) for r in ranges}
+        half = 0.5 * max(cfg.grids.micro.length_m, cfg.grids.short.length_m)
+        self.voxels = VoxelMemory(cfg.mapping.voxel_m, cfg.mapping.memory_s, half) if voxels else None
         self.t_ns = np.iinfo(np.int64).min
 
     def add(self, points_base: NDArray, origin_base: NDArray, T_odom_base: NDArray, t_ns: int) -> None:
@@ -47,6 +50,8 @@ class Mapper:
         odom = p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3]
         for c in self.cells.values():
             c.add(odom, rng, T_odom_base[:2, 3], t_ns)
+        if self.voxels is not None:
+            self.voxels.add(odom, T_odom_base[:2, 3], t_ns)
 
     def map(self, rng: str, center_xy: NDArray, t_ns: int) -> MapLayers:
         """Return range ``rng``'s map at ``t_ns``: the grid's cells around ``center_xy`` (snapped
@@ -55,3 +60,9 @@ class Mapper:
         crop = c.crop(center_xy, c.n, t_ns)
         center = (crop["origin"] + c.n / 2) * c.res
         return layers(crop, self.cfg.mapping, c.res, center)
+
+    def voxel_points(self, t_ns: int) -> NDArray[np.float32]:
+        """Return the voxel map at ``t_ns``: voxel centres (N, 3) in odom."""
+        if self.voxels is None:
+            raise ValueError("this Mapper keeps no voxels (voxels=False)")
+        return self.voxels.points(t_ns)

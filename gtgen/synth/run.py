@@ -183,7 +183,9 @@ class _Ticker:
         self.vel_odom = np.gradient(world.odom.p_odom, dt, axis=0)
         self.yaw_rate = np.gradient(np.unwrap(ro[:, 2]), dt)
 
-    def _msg(self, out: list, topic: str, msgtype: str, t_rec: int, build) -> None:
+    def _msg(self, out: list, topic: str | None, msgtype: str, t_rec: int, build) -> None:
+        if topic is None:  # a role the config leaves to gtgen.mapping (topics.map_<range>, voxel_map: null)
+            return
         out.append((topic, msgtype, int(t_rec), [f.serialize(build(f), msgtype) for f in self.factories]))
 
     def static_messages(self) -> list:
