@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import REALDATA, needs_realdata
 from gtgen.config import GridSpec, GtgenConfig, MappingConfig
 from gtgen.mapping.cells import RollingCells
 from gtgen.mapping.mapper import Mapper
@@ -219,3 +220,28 @@ def test_a_lidar_made_map_needs_a_raw_scan_topic(drive_dir, cfg, tmp_path):
     c.topics.lidar = ["/no/such/points"]
     with pytest.raises(TopicError, match=r"topics.map_micro, topics.map_short, topics.voxel_map null .*PointCloud2 topics found: \['/xracer/voxel_map'\]"):
         run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", c, workers=1)
+
+
+@needs_realdata()
+def test_a_real_hdl64_scan_maps_with_its_ground_blind_ring_and_walls():
+    """One Velodyne HDL-64E scan (x, y, z, intensity, ring and padding; no TF): the sensor
+    near (429.1, -1226.2), its roof about 3.1 m above the frame's zero and 1.9 m above the
+    ground (the points within 3 m are the car itself, at the roof's height)."""
+    from gtgen.bag.decode.pointcloud import decode_pointcloud
+    from gtgen.bag.reader import BagSet
+    from gtgen.mapping.mapper import map_scan
+
+    with BagSet([REALDATA / "swri_hdl64_single_scan.bag"]) as bags:
+        msg = next(m for _, _, _, m, _ in bags.messages(["/pointcloud2"]) if m is not None)
+    pts = decode_pointcloud(msg)
+    assert pts.shape == (124914, 3)
+    lay = map_scan(pts, np.array([429.1, -1226.2, -3.1]), 1.9, GtgenConfig())["micro"]
+    c = (np.arange(500) + 0.5) * 0.2 - 50 + lay.center[0] - 429.1
+    r = np.hypot(c[:, None], ((np.arange(500) + 0.5) * 0.2 - 50 + lay.center[1] + 1226.2)[None, :])
+    seen = np.isfinite(lay.elevation)
+    assert not seen[r < 3].any()  # the blind ring (and the car, masked out)
+    ring = seen & (r > 5) & (r < 10)
+    assert ring.sum() > 300
+    assert np.abs(np.median(lay.elevation[ring]) + 5.0) < 0.2  # the ground, 1.9 m under the sensor
+    assert (lay.risk[ring] < 0.5).mean() > 0.9  # ground is safe ...
+    assert (lay.risk[seen & (r > 10)] >= 0.5).sum() > 50  # ... walls and vegetation farther out are not

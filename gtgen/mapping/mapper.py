@@ -66,3 +66,17 @@ class Mapper:
         if self.voxels is None:
             raise ValueError("this Mapper keeps no voxels (voxels=False)")
         return self.voxels.points(t_ns)
+
+
+def map_scan(points: NDArray, origin: NDArray, sensor_height_m: float, cfg: GtgenConfig, t_ns: int = 0) -> dict[str, MapLayers]:
+    """Return every range's map of one scan without poses: ``points`` (N, 3) in a local
+    frame, the sensor at ``origin`` (x, y, z) in it, mounted ``sensor_height_m`` above the
+    vehicle's base (the body box of ``mapping`` is about the base). A bag with one scan and
+    no TF maps this way; a drive needs poses (odometry or TF odom -> base) to be mapped."""
+    mp = Mapper(cfg)
+    o = np.asarray(origin, np.float64)
+    base = o - np.array([0.0, 0.0, sensor_height_m])
+    T = np.eye(4)
+    T[:3, 3] = base
+    mp.add(np.asarray(points, np.float64) - base, o - base, T, t_ns)
+    return {r: mp.map(r, base[:2], t_ns) for r in mp.cells}
