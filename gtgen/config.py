@@ -325,10 +325,10 @@ class TrainConfig(_Model):
 
 class MappingConfig(_Model):
     """Grid maps from raw lidar (``gtgen.mapping``): what a range's map is where no stack publishes one
-    (``topics.map_<range>: null``). Cells hold the points of the last ``memory_s``; the layers
-    follow the stack's semantics, so fuse reads them as it reads X-Racer's."""
+    (``topics.map_<range>: null``). Maps are made at the front camera's stamps that extract keeps
+    (``extract.map_rate_hz`` and each sample's map at t). Cells hold the points of the last
+    ``memory_s``; the layers follow the stack's semantics, so fuse reads them as X-Racer's."""
 
-    rate_hz: float = Field(5.0, gt=0, le=100, description="maps made per range [Hz], at lidar sweep stamps")
     memory_s: float = Field(10.0, gt=0, le=MAX_SPAN_S, description="a cell forgets points older than this [s] (odometry drifts)")
     ground_band_m: float = Field(0.15, gt=0, description="a cell's ground is the mean of its points within this of its lowest point [m]: vegetation and overhangs above stay out")
     min_points: int = Field(2, ge=1, description="ground points a cell needs before it has an elevation")

@@ -22,6 +22,7 @@ class LabelErrors:
         self.acc = {r: {reg: {"elev_abs": 0.0, "n": 0, "risk_sq": 0.0, "nr": 0, "xr_abs": 0.0, "nx": 0} for reg in REGIONS.values()}
                     for r in RANGES}
         self.fused_vs_single = {r: {"fused_abs": 0.0, "single_abs": 0.0, "n": 0} for r in RANGES}
+        self.fatal = {r: {"tp": 0, "fp": 0, "fn": 0, "n": 0} for r in RANGES}
         self.h_err: list[float] = []
         self.v_err: list[float] = []
         self.h_err_far: list[float] = []
@@ -39,7 +40,7 @@ class LabelErrors:
                 lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
             self.v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
             for r in RANGES:
-                _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r])
+                _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r], self.fatal[r])
         self.samples += len(idx)
 
     def table(self) -> dict:
@@ -60,6 +61,12 @@ class LabelErrors:
                 "single_map_mae_m": round(fs["single_abs"] / fs["n"], 4) if fs["n"] else None,
                 "cells": fs["n"],
             }
+            f = self.fatal[r]
+            out[r]["fatal_risk"] = {
+                "precision": round(f["tp"] / (f["tp"] + f["fp"]), 4) if f["tp"] + f["fp"] else None,
+                "recall": round(f["tp"] / (f["tp"] + f["fn"]), 4) if f["tp"] + f["fn"] else None,
+                "cells": f["n"],
+            }
         out["dem_alignment"] = {
             "horizontal_at_vehicle_m": quantiles(np.asarray(self.h_err)),
             "horizontal_50m_ahead_m": quantiles(np.asarray(self.h_err_far)),
@@ -69,7 +76,7 @@ class LabelErrors:
 
 
 def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: int, r: str, T_odom_target: np.ndarray, acc: dict,
-                       fs: dict) -> None:
+                       fs: dict, fatal: dict) -> None:
     """Accumulate sample ``k``'s label, risk and X-Racer errors of range ``r`` per region."""
     gr = cfg.grids.get(r)
     X, Y = grid_xy(gr.size, gr.resolution_m)
@@ -91,6 +98,13 @@ def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: 
         mx = (reg == code) & np.isfinite(xe)
         a["xr_abs"] += float(np.abs(xe[mx] - te[mx]).sum())
         a["nx"] += int(mx.sum())
+    # fatal risk (label >= train.fatal_risk) against the truth's at the same threshold, on observed cells
+    lab = codes.observed(reg) & np.isfinite(rk)
+    p, q = rk[lab] >= cfg.train.fatal_risk, trisk[lab] >= cfg.train.fatal_risk
+    fatal["tp"] += int((p & q).sum())
+    fatal["fp"] += int((p & ~q).sum())
+    fatal["fn"] += int((~p & q).sum())
+    fatal["n"] += int(lab.sum())
     # averaging works: fused vs the single X-Racer map at t on cells both call confident
     both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
     fs["fused_abs"] += float(np.abs(el[both] - seen[both]).sum())
