@@ -245,3 +245,28 @@ def test_a_real_hdl64_scan_maps_with_its_ground_blind_ring_and_walls():
     assert np.abs(np.median(lay.elevation[ring]) + 5.0) < 0.2  # the ground, 1.9 m under the sensor
     assert (lay.risk[ring] < 0.5).mean() > 0.9  # ground is safe ...
     assert (lay.risk[seen & (r > 10)] >= 0.5).sum() > 50  # ... walls and vegetation farther out are not
+
+
+def test_voxel_memory_holds_the_voxels_of_the_last_memory_s_in_the_window():
+    from gtgen.mapping.voxels import VoxelMemory
+
+    rng = np.random.default_rng(5)
+    vm = VoxelMemory(0.5, 0.25, 6.0)
+    sweeps = []
+    for s in range(30):  # the window moves 0.4 m a sweep, points expire after 0.25 s
+        c = np.array([0.4 * s, 0.0])
+        p = np.column_stack([c + rng.uniform(-8, 8, (300, 2)), rng.uniform(-1, 2, 300)])
+        t = s * 100_000_000
+        vm.add(p, c, t)
+        sweeps.append((p, c, t))
+    c, t = sweeps[-1][1], sweeps[-1][2]
+    want = set()
+    for p, cs, ts in sweeps:
+        if t - ts <= 250_000_000:
+            near = np.all(np.abs(p[:, :2] - cs) < 6.0, axis=1)
+            for k in np.floor(p[near] / 0.5).astype(int):
+                centre = (k + 0.5) * 0.5
+                if np.all(np.abs(centre[:2] - c) < 6.0):
+                    want.add(tuple(k))
+    got = {tuple(k) for k in np.floor(vm.points(t, c) / 0.5).astype(int)}
+    assert got == want and len(want) > 300

@@ -116,32 +116,40 @@ def map_pass(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, topics: list[s
 def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: str, tg: Targets, tf: TfBuffer,
                 track: PoseTrack) -> SegmentOut:
     """Map one segment (a process-pool job): feed the scans from ``memory_s`` before its first
-    target to its last, in stamp order, and make each target when the scans reach it."""
+    target to its last, in stamp order, and make each target once the scans pass it (a map
+    at t holds the scans stamped up to t). Scans within ``BATCH_NS`` go in together, each put
+    in odom with its own pose."""
     times = tg.times()
     mapper = Mapper(cfg, tuple(tg.maps), voxels=tg.voxels is not None)
     w = DriveWriter.reopen(Path(store))
     arrays = {r: {name: w.map_layer(r, name) for name in MAP_LAYERS} for r in tg.maps}
     out = SegmentOut()
     start = int(times[0] - cfg.mapping.memory_s * 1e9 - REORDER_NS)
-    stop = int(times[-1] + REORDER_NS)
     todo = list(times)
     heap: list[tuple[int, int, NDArray, str]] = []
+    batch = _Batch()
     n = 0
 
-    def emit_until(t_next: int) -> None:
-        while todo and todo[0] < t_next:
-            _make(todo.pop(0), mapper, tg, arrays, cfg, track, out)
+    def flush() -> None:
+        if batch.pts:
+            mapper.add_odom(np.concatenate(batch.pts), np.concatenate(batch.rng), batch.center, batch.t)
+            batch.__init__()  # type: ignore[misc]
 
     def feed(item: tuple[int, int, NDArray, str]) -> None:
         t, _, pts, frame = item
-        emit_until(t + 1)  # a map at t holds the scans stamped up to t
-        if t < mapper.t_ns:
-            out.skipped += 1
+        if todo and todo[0] < t:
+            flush()
+            while todo and todo[0] < t:
+                _make(todo.pop(0), mapper, tg, arrays, cfg, track, out)
+        if batch.pts and t - batch.t0 >= BATCH_NS:
+            flush()
+        if t < max(mapper.t_ns, batch.t):
+            out.skipped += 1  # later than the reorder buffer allowed
             return
-        _add(mapper, cfg, tf, track, pts, frame, t, out)
+        _add(batch, mapper, cfg, tf, track, pts, frame, t, out)
 
     with BagSet(paths) as bags:
-        for _topic, _type, rec_t, msg, _err in bags.messages(topics, start, stop):
+        for _topic, _type, rec_t, msg, _err in bags.messages(topics, start, int(times[-1] + REORDER_NS)):
             if msg is None:
                 continue
             t = stamp_ns(msg.header)  # type: ignore[attr-defined]
@@ -153,20 +161,42 @@ def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: s
                 feed(heapq.heappop(heap))
     while heap:
         feed(heapq.heappop(heap))
-    emit_until(np.iinfo(np.int64).max)
+    flush()
+    while todo:
+        _make(todo.pop(0), mapper, tg, arrays, cfg, track, out)
     return out
 
 
-def _add(mapper: Mapper, cfg: GtgenConfig, tf: TfBuffer, track: PoseTrack, pts: NDArray, frame: str, t: int,
+BATCH_NS = 100_000_000  # scans stamped within this go into the cells together (three lidars' sweeps)
+
+
+@dataclass
+class _Batch:
+    """Scans in odom waiting to go into the cells together."""
+
+    pts: list[NDArray] = field(default_factory=list)
+    rng: list[NDArray] = field(default_factory=list)
+    t0: int = 0  # the first scan's stamp
+    t: int = np.iinfo(np.int64).min  # the last scan's stamp
+    center: NDArray = field(default_factory=lambda: np.zeros(2))
+
+
+def _add(batch: _Batch, mapper: Mapper, cfg: GtgenConfig, tf: TfBuffer, track: PoseTrack, pts: NDArray, frame: str, t: int,
          out: SegmentOut) -> None:
-    """Add one scan in ``frame`` at ``t`` to ``mapper`` (skipped where no pose or transform is known)."""
+    """Put one scan in ``frame`` at ``t`` into ``batch`` in odom (skipped where no pose or
+    transform is known)."""
     T_bs, ok = tf.lookup(cfg.topics.base_frame, frame, np.array([t]))
     if not ok[0] or not track.covered(np.array([t]))[0]:
         out.skipped += 1
         return
     T_ob = track.transforms(np.array([t]))[0]
     pb = pts.astype(np.float64) @ T_bs[0, :3, :3].T + T_bs[0, :3, 3]
-    mapper.add(pb, T_bs[0, :3, 3], T_ob, t)
+    odom, rng = mapper.to_odom(pb, T_bs[0, :3, 3], T_ob)
+    if not batch.pts:
+        batch.t0 = t
+    batch.pts.append(odom)
+    batch.rng.append(rng)
+    batch.t, batch.center = t, T_ob[:2, 3]
     out.sweeps += 1
 
 
@@ -182,4 +212,4 @@ def _make(t: int, mapper: Mapper, tg: Targets, arrays: dict, cfg: GtgenConfig, t
     if tg.voxels is not None:
         k, ts = tg.voxels
         for v in k[ts == t]:
-            out.voxels[int(v)] = thinned_points(mapper.voxel_points(t), cfg.shards.max_voxel_points, cfg.shards.far_voxel_m)
+            out.voxels[int(v)] = thinned_points(mapper.voxel_points(t, center), cfg.shards.max_voxel_points, cfg.shards.far_voxel_m)

@@ -40,18 +40,25 @@ class Mapper:
     def add(self, points_base: NDArray, origin_base: NDArray, T_odom_base: NDArray, t_ns: int) -> None:
         """Add a sweep: ``points_base`` (N, 3) in the base frame at ``t_ns``, the sensor at
         ``origin_base`` (3,), the base at ``T_odom_base`` (4, 4). Sweeps come in time order."""
+        self.add_odom(*self.to_odom(points_base, origin_base, T_odom_base), T_odom_base[:2, 3], t_ns)
+
+    def to_odom(self, points_base: NDArray, origin_base: NDArray, T_odom_base: NDArray) -> tuple[NDArray, NDArray]:
+        """Return a sweep's points in odom (the body masked out) and their ranges from the sensor."""
+        p = np.asarray(points_base, np.float64)
+        p = p[~body_mask(p, self.cfg) & np.isfinite(p).all(axis=1)]
+        rng = np.linalg.norm(p - np.asarray(origin_base, np.float64)[None, :], axis=1).astype(np.float32)
+        return p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3], rng
+
+    def add_odom(self, odom: NDArray, rng: NDArray, center_xy: NDArray, t_ns: int) -> None:
+        """Add points already in odom (``to_odom`` of one sweep or of several merged, stamped
+        ``t_ns``), taken with the vehicle at ``center_xy``."""
         if t_ns < self.t_ns:
             raise ValueError(f"sweep at {t_ns} ns comes after one at {self.t_ns} ns; sweeps must come in time order")
         self.t_ns = t_ns
-        p = np.asarray(points_base, np.float64)
-        keep = ~body_mask(p, self.cfg) & np.isfinite(p).all(axis=1)
-        p = p[keep]
-        rng = np.linalg.norm(p - np.asarray(origin_base, np.float64)[None, :], axis=1).astype(np.float32)
-        odom = p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3]
         for c in self.cells.values():
-            c.add(odom, rng, T_odom_base[:2, 3], t_ns)
+            c.add(odom, rng, center_xy, t_ns)
         if self.voxels is not None:
-            self.voxels.add(odom, T_odom_base[:2, 3], t_ns)
+            self.voxels.add(odom, center_xy, t_ns)
 
     def map(self, rng: str, center_xy: NDArray, t_ns: int) -> MapLayers:
         """Return range ``rng``'s map at ``t_ns``: the grid's cells around ``center_xy`` (snapped
@@ -61,11 +68,11 @@ class Mapper:
         center = (crop["origin"] + c.n / 2) * c.res
         return layers(crop, self.cfg.mapping, c.res, center)
 
-    def voxel_points(self, t_ns: int) -> NDArray[np.float32]:
-        """Return the voxel map at ``t_ns``: voxel centres (N, 3) in odom."""
+    def voxel_points(self, t_ns: int, center_xy: NDArray) -> NDArray[np.float32]:
+        """Return the voxel map at ``t_ns`` around ``center_xy``: voxel centres (N, 3) in odom."""
         if self.voxels is None:
             raise ValueError("this Mapper keeps no voxels (voxels=False)")
-        return self.voxels.points(t_ns)
+        return self.voxels.points(t_ns, center_xy)
 
 
 def map_scan(points: NDArray, origin: NDArray, sensor_height_m: float, cfg: GtgenConfig, t_ns: int = 0) -> dict[str, MapLayers]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+WINDOW_EVERY = 10  # sweeps between the checks of which voxels left the window
 BIAS = 1 << 20  # keys are offset by this before packing: +-2^20 voxels (420 km at 0.4 m) per axis
 
 
@@ -30,25 +31,37 @@ class VoxelMemory:
         self.voxel_m, self.memory_ns, self.half_m = voxel_m, int(memory_s * 1e9), half_m
         self.key = np.zeros(0, np.int64)
         self.t = np.zeros(0, np.int64)
+        self._adds = 0
 
     def add(self, pts_odom: NDArray, center_xy: NDArray, t_ns: int) -> None:
-        """Add one sweep's points (N, 3) in odom, taken with the vehicle at ``center_xy``."""
+        """Add one sweep's points (N, 3) in odom, taken with the vehicle at ``center_xy``:
+        voxels seen again get the new stamp, new ones are inserted in key order (no sort of
+        the whole set); voxels older than ``memory_s`` or out of the window are dropped."""
         near = np.all(np.abs(pts_odom[:, :2] - center_xy[:2]) < self.half_m, axis=1)
         k = np.floor(pts_odom[near] / self.voxel_m).astype(np.int64)
         if np.any(np.abs(k) >= BIAS):
             raise ValueError(f"a point lies beyond {BIAS * self.voxel_m / 1000:.0f} km of the odom origin")
         new = np.unique(pack3(k))
-        key = np.concatenate([self.key, new])
-        t = np.concatenate([self.t, np.full(len(new), t_ns, np.int64)])
-        order = np.lexsort((-t, key))  # per key the newest first
-        key, t = key[order], t[order]
-        first = np.r_[True, key[1:] != key[:-1]]
-        key, t = key[first], t[first]
-        c = (unpack3(key)[:, :2] + 0.5) * self.voxel_m
-        keep = (t_ns - t <= self.memory_ns) & np.all(np.abs(c - center_xy[:2]) < self.half_m, axis=1)
-        self.key, self.t = key[keep], t[keep]
+        at = np.searchsorted(self.key, new)
+        hit = np.zeros(len(new), bool)
+        if len(self.key):
+            hit = self.key[np.minimum(at, len(self.key) - 1)] == new
+        self.t[at[hit]] = t_ns
+        self.key = np.insert(self.key, at[~hit], new[~hit])
+        self.t = np.insert(self.t, at[~hit], t_ns)
+        keep = t_ns - self.t <= self.memory_ns
+        self._adds += 1
+        if self._adds % WINDOW_EVERY == 0:  # out of the window: checked now and then (points() checks always)
+            keep &= self._inside(center_xy)
+        if not keep.all():
+            self.key, self.t = self.key[keep], self.t[keep]
 
-    def points(self, t_ns: int) -> NDArray[np.float32]:
-        """Return the centres (N, 3) in odom of the voxels seen in the ``memory_s`` before ``t_ns``."""
-        live = (t_ns - self.t <= self.memory_ns) & (self.t <= t_ns)
+    def _inside(self, center_xy: NDArray) -> NDArray[np.bool_]:
+        c = (unpack3(self.key)[:, :2] + 0.5) * self.voxel_m
+        return np.all(np.abs(c - center_xy[:2]) < self.half_m, axis=1)
+
+    def points(self, t_ns: int, center_xy: NDArray) -> NDArray[np.float32]:
+        """Return the centres (N, 3) in odom of the voxels seen in the ``memory_s`` before
+        ``t_ns`` within the window around ``center_xy``."""
+        live = (t_ns - self.t <= self.memory_ns) & (self.t <= t_ns) & self._inside(center_xy)
         return ((unpack3(self.key[live]) + 0.5) * self.voxel_m).astype(np.float32)
