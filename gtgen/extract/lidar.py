@@ -2,8 +2,9 @@
 
 A scan is stored in its sensor's frame at its header stamp, as int16 centimetres (6 bytes
 a point before zstd; +-327 m), in one chunk per scan padded with ``FILL`` to
-``extract.max_scan_points`` (the padding compresses to almost nothing), with the sensor's
-pose in odom at the stamp beside it. A cloud with a per-point time field is first
+``extract.max_scan_points`` (the padding compresses to almost nothing), with the pose of
+its rows' origin in odom at the stamp beside it (the sensor's, or for a cloud published
+far from its frame's origin that frame shifted to the cloud's median, see ``compact``). A cloud with a per-point time field is first
 motion-corrected (deskewed): each point is moved into the sensor frame at the stamp
 through the sensor's motion between the stamp and its time (TF, in ``DESKEW_BINS`` time
 bins over the sweep). Extract keeps, per lidar, every scan at least ``shards.scan_travel_m``
@@ -25,16 +26,23 @@ LIMIT_M = 327.0  # points farther from the sensor on any axis are not stored [m]
 DESKEW_BINS = 32  # time bins of a sweep for the motion correction
 
 
-def compact(pts: NDArray[np.float32], n: int) -> tuple[NDArray[np.int16], int]:
-    """Return a scan (N, 3) in its sensor frame [m] as one padded row (n, 3) of int16 cm and
-    its point count: the finite points within ``LIMIT_M``, at most the ``n`` nearest."""
-    pts = pts[np.all(np.isfinite(pts) & (np.abs(pts) < LIMIT_M), axis=1)]
-    if len(pts) > n:
-        r2 = np.einsum("ij,ij->i", pts, pts)
-        pts = pts[np.sort(np.argpartition(r2, n - 1)[:n])]
+def compact(pts: NDArray[np.float32], n: int) -> tuple[NDArray[np.int16], int, NDArray[np.float64]]:
+    """Return a scan (N, 3) in its frame [m] as one padded row (n, 3) of int16 cm, its point
+    count and the shift of the row's origin in that frame [m]: 0, or for a cloud not
+    centred on its frame's origin (one published in a map frame) its median point to the
+    cm. Kept: the finite points within ``LIMIT_M`` of that origin, at most the ``n`` nearest."""
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    shift = np.zeros(3)
+    if len(pts) and np.abs(pts).max() >= LIMIT_M:
+        shift = np.round(np.median(pts, axis=0).astype(np.float64), 2)
+    p = pts - shift
+    p = p[np.all(np.abs(p) < LIMIT_M, axis=1)]
+    if len(p) > n:
+        r2 = np.einsum("ij,ij->i", p, p)
+        p = p[np.sort(np.argpartition(r2, n - 1)[:n])]
     out = np.full((n, 3), FILL, np.int16)
-    out[: len(pts)] = np.round(pts / CM).astype(np.int16)
-    return out, len(pts)
+    out[: len(p)] = np.round(p / CM).astype(np.int16)
+    return out, len(p), shift
 
 
 def expand(rows: NDArray[np.int16], n_points: int) -> NDArray[np.float64]:

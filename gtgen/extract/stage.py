@@ -48,7 +48,7 @@ class Staged:
     map_pose: dict[tuple[str, int], tuple[NDArray, float, str]] = field(default_factory=dict)
     map_shape: dict[str, tuple[int, int]] = field(default_factory=dict)
     voxels: dict[int, tuple[int, int, str]] = field(default_factory=dict)  # ordinal -> (points, stamp, frame); -1 points: raw .npy
-    scans: dict[tuple[str, int], int] = field(default_factory=dict)  # (lidar role, ordinal) -> points; -1: raw .npy (to deskew)
+    scans: dict[tuple[str, int], tuple[int, NDArray]] = field(default_factory=dict)  # (lidar role, ordinal) -> (points, row origin shift); -1 points: raw .npy (to deskew)
 
     def chunk(self, role: str, i: int, layer: str = "") -> Path:
         """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
@@ -125,11 +125,11 @@ class Stager:
             f = self.result.raw_scan(role, i)
             make_parent(f, self.made)
             np.save(f, np.column_stack([pts, dt_s]).astype(np.float32))
-            self.result.scans[(role, i)] = -1
+            self.result.scans[(role, i)] = (-1, np.zeros(3))
             return
-        row, n = compact(pts, self.cfg.extract.max_scan_points)
+        row, n, shift = compact(pts, self.cfg.extract.max_scan_points)
         self._write(self.result.chunk(role, i), row)
-        self.result.scans[(role, i)] = n
+        self.result.scans[(role, i)] = (n, shift)
 
     def add_map(self, role: str, i: int, t: int, msg: object, ok: bool) -> None:
         """Take GridMap ``i`` (slice ordinal) of ``role`` stamped ``t``; ``ok`` is False for

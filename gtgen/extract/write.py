@@ -163,14 +163,14 @@ class _Large:
         for role in self.lidars:
             for o, targets in want[role].items():
                 stg, i = self.slices.locate(role, o)
-                n = stg.scans.get((role, i)) if stg else None
-                if n is None:
+                got = stg.scans.get((role, i)) if stg else None
+                if got is None:
                     self.missing[role][o] = targets
-                elif n < 0:
+                elif got[0] < 0:
                     self.raw_scans.append((targets, stg.raw_scan(role, i), role))
                 else:
                     self.w.place_scan(stg.chunk(role, i), targets)
-                    self.scan_meta.n_points[targets] = n
+                    self._counted(targets, *got)
 
     def _place_maps(self, r: str, want: dict[int, list[int]]) -> None:
         role = f"map.{r}"
@@ -205,8 +205,8 @@ class _Large:
                 for v, pts in got.voxels.items():
                     self.n_points[v] = len(pts)
                     writes.submit(self.vox.__setitem__, v, padded(pts, P))
-                for ls, (row, n) in got.scans.items():
-                    self._put_scan(writes, list(ls), row, n)
+                for ls, (row, n, shift) in got.scans.items():
+                    self._put_scan(writes, list(ls), row, n, shift)
             for v, f, t, frame in self.raw:
                 pts = thinned_points(to_odom_frame(np.load(f), self.cfg, self.tf, frame, t), P, self.cfg.shards.far_voxel_m)
                 self.n_points[v] = len(pts)
@@ -221,9 +221,15 @@ class _Large:
             raise BagError(f"bags ended before every selected message was read ({seen} of {n_missing} messages)")
         return n_missing
 
-    def _put_scan(self, writes: BackgroundWrites, ls: list[int], row: NDArray, n: int) -> None:
-        arr = self.w.scan_array()
+    def _counted(self, ls: list[int], n: int, shift: NDArray) -> None:
+        """Note scans ``ls``'s points and move their pose to their rows' origin (``lidar.compact``)."""
         self.scan_meta.n_points[ls] = n
+        T = self.scan_meta.T_odom_sensor
+        T[ls, :3, 3] += T[ls, :3, :3] @ shift
+
+    def _put_scan(self, writes: BackgroundWrites, ls: list[int], row: NDArray, n: int, shift: NDArray) -> None:
+        arr = self.w.scan_array()
+        self._counted(ls, n, shift)
         for sc in ls:
             writes.submit(arr.__setitem__, sc, row)
 
@@ -252,7 +258,7 @@ class SliceOut:
     selected: int
     maps: dict[tuple[str, int], tuple[NDArray, float, float]]  # (range, kept index) -> centre, yaw, height in odom
     voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
-    scans: dict[tuple[int, ...], tuple[NDArray, int]] = field(default_factory=dict)  # kept scan indexes -> (stored row, points)
+    scans: dict[tuple[int, ...], tuple[NDArray, int, NDArray]] = field(default_factory=dict)  # kept scan indexes -> (stored row, points, origin shift)
 
 
 def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,

@@ -84,7 +84,7 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("scans/lidar", "uint8", "(L,)", "-", "-", "-", "the scan's lidar: index into topics.lidar of the stored config"),
     ArraySpec("scans/n_points", "int64", "(L,)", "-", "-", "-", "points of each scan (at most extract.max_scan_points, the nearest kept)"),
     ArraySpec("scans/distance_m", "float64", "(L,)", "m", "-", "-", "odometry travel at the scan's stamp"),
-    ArraySpec("scans/T_odom_sensor", "float64", "(L, 4, 4)", "m", "odom <- sensor", "-", "the lidar's pose at the stamp (TF)"),
+    ArraySpec("scans/T_odom_sensor", "float64", "(L, 4, 4)", "m", "odom <- sensor", "-", "pose of the rows' origin at the stamp: the lidar (TF), or for a cloud far from its frame's origin that frame shifted to the cloud's median (extract.lidar.compact)"),
     ArraySpec("scans/points_cm", "int16", "(L, Q, 3)", "cm", "sensor at the stamp", "-32768", "points of scan l in rows [0, n_points[l]), motion-corrected to the stamp if the cloud has per-point times; one chunk per scan"),
 ]
 
