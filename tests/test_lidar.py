@@ -226,9 +226,14 @@ def test_n_scan_input_equals_an_independent_accumulation(scan_dataset, scan_cfg)
     from gtgen.storage.dataset import DatasetStore
     from gtgen.storage.drive import DriveStore
 
+    from gtgen.storage import schema as sc
+
     d = DriveStore(scan_dataset / "drive.zarr")
     ds = DatasetStore(scan_dataset / "dataset.zarr")
     assert ds.has_scans and ds.scan_dims == (scan_cfg.shards.max_scan_points, scan_cfg.shards.max_scans)
+    for spec in sc.SCAN_ARRAYS:  # as documented: one row per sample, sharded
+        a = ds.array(spec.path)
+        assert a.dtype == np.dtype(spec.dtype) and a.chunks[0] == 1 and a.shards[0] == sc.SAMPLES_PER_SHARD, spec.path
     t_ds = ds.meta("t_ns")
     pts_r, counts_r = ds.scan_input()
     for j in sorted({0, len(t_ds) // 2, len(t_ds) - 1}):
