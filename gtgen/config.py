@@ -179,6 +179,12 @@ class SynthConfig(_Model):
     terrain_change_radius_m: float = Field(12.0, gt=0, description="radius of a terrain change [m]")
     dem_shifted_tile_m: float = Field(0.0, ge=0, description="one DEM tile under the drive is georeferenced this far off to the east [m] (0 = none)")
     dem_wrong_tile: bool = Field(False, description="one DEM tile under the drive holds the terrain of a neighbouring area (1 km north)")
+    scan_rate_hz: float = Field(10.0, ge=0, description="raw scans published per lidar (three spinning 32-beam lidars: front, front tilted down, back) [Hz]; 0: none")
+    scan_beams: int = Field(32, ge=1, le=32, description="beams cast of the VLP-32C's 32 (evenly thinned, the lowest and highest kept)")
+    scan_azimuth_deg: float = Field(0.4, gt=0, le=10, description="azimuth step of a scan's columns [deg] (a VLP-32C at 10 Hz: 0.2)")
+    scan_range_m: float = Field(100.0, gt=1, description="maximum range of a raw scan [m]")
+    scan_noise_m: float = Field(0.03, ge=0, description="range noise std of a raw scan return [m]")
+    scan_dropout: float = Field(0.05, ge=0, lt=1, description="share of a raw scan's returns dropped at random")
     workers: int = Field(2, ge=1, le=64, description="processes simulating in parallel (output does not depend on it)")
     circular_buffer_every: int = Field(3, ge=0, description="every n-th map has non-zero start indices (0 = never)")
 
@@ -202,6 +208,8 @@ class ExtractConfig(_Model):
     map_rate_hz: float = Field(2.0, ge=1 / MAX_SPAN_S, description="GridMaps kept per range [Hz]; they overlap heavily")
     image_width: int = Field(160, ge=8, le=4096, description="stored image width [px]")
     image_height: int = Field(100, ge=8, le=4096, description="stored image height [px]")
+    scan_skew_s: float = Field(0.2, ge=0, le=MAX_SPAN_S, description="max scan-to-sample skew of a sample's newest raw scan per lidar [s]")
+    max_scan_points: int = Field(131072, ge=1, le=10_000_000, description="points stored per raw scan (the nearest kept beyond)")
     record_skew_warn_s: float = Field(1.0, ge=0, le=MAX_SPAN_S, description="report header vs record time differences above this [s]")
 
 
@@ -258,6 +266,10 @@ class ShardsConfig(_Model):
     split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")
     max_voxel_points: int = Field(60000, ge=1, le=10_000_000, description="voxel-map points kept per map: all of them near the vehicle, and beyond the radius that keeps them within this count one per far_voxel_m voxel")
     far_voxel_m: float = Field(0.8, gt=0, description="voxel edge of the far part of a voxel map that exceeds max_voxel_points [m]")
+    max_scans: int = Field(10, ge=1, le=254, description="raw scans per lidar in a sample's N-scan input (inputs/scan_*; train.n_scans takes up to this many)")
+    scan_travel_m: float = Field(2.0, ge=0, description="travel between the scans of the N-scan input (and between the scans extract keeps) [m]")
+    scan_voxel_m: float = Field(0.4, gt=0, description="voxel edge of the N-scan input's filter (the first point per voxel, newest scan first) [m]")
+    max_scan_points: int = Field(120000, ge=1, le=10_000_000, description="points of a sample's N-scan input (the nearest kept), within the short grid")
 
 
 class TrainConfig(_Model):

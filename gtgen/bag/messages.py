@@ -103,6 +103,19 @@ class MessageFactory:
             is_bigendian=False, point_step=12, row_step=12 * len(pts), data=data, is_dense=True,
         )
 
+    def pointcloud(self, t_ns: int, frame: str, points: np.ndarray, seq: int) -> object:
+        """Return a PointCloud2 of a structured array ``points`` (one field per name, at its
+        offset; float32 -> FLOAT32, uint16 -> UINT16, ...; padding bytes stay in point_step)."""
+        kinds = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
+        PF = self.T["sensor_msgs/msg/PointField"]
+        dt = points.dtype
+        fields = [PF(name=n, offset=dt.fields[n][1], datatype=kinds[dt.fields[n][0].str[1:]], count=1) for n in dt.names]
+        data = np.frombuffer(np.ascontiguousarray(points).tobytes(), np.uint8)
+        return self.T["sensor_msgs/msg/PointCloud2"](
+            header=self.header(t_ns, frame, seq), height=1, width=len(points), fields=fields,
+            is_bigendian=False, point_step=dt.itemsize, row_step=dt.itemsize * len(points), data=data, is_dense=True,
+        )
+
     def foxglove_grid(self, t_ns: int, frame: str, resolution: float, layers: dict[str, NDArray]) -> object:
         """Return a foxglove_msgs Grid (ROS 2) of square float32 layers in gtgen layout
         (axis 0 = +x from -L/2, axis 1 = +y), centred on ``frame``'s origin: cell (i, j)

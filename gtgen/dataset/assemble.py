@@ -1,6 +1,7 @@
 """Assembling dataset samples: a kept sample's labels (fused, DEM-filled where
 unobserved), the X-Racer baseline and the aligned DEM, and its paired inputs (images,
-calibration, voxel points in the target frame, the raw min-z grid), a shard at a time.
+calibration, voxel points in the target frame, the raw min-z grid, the N-scan input when
+the drive has raw scans), a shard at a time.
 
 ``build_block`` runs in pool workers beside dem-align's ICP chain; each worker opens the
 stores itself from a picklable ``Context``.
@@ -16,6 +17,7 @@ from numpy.typing import NDArray
 
 from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.dataset.scans import ScanInput
 from gtgen.dataset.split import split_of
 from gtgen.dem.place import dem_patch
 from gtgen.dem.tiles import DemRef, DemSource
@@ -86,6 +88,7 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     vs = np.unique(s.voxel_index[ks])
     vox, vox_n = drive.voxel_points(vs), drive.voxel_counts()
     K = drive.K()
+    scans = ScanInput(drive, cfg, ks) if len(drive.scans) else None
     samples, points = [], []
     for j, it in enumerate(items):
         pos, quat = s.pos_odom_m[it.k], s.quat_odom_xyzw[it.k]
@@ -96,6 +99,8 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
         sample.inputs.update({"K": K, "T_base_cam": s.T_base_cam[it.k]})
         _inputs_and_meta(sample, cfg, it, images[j], int(s.t_ns[it.k]), pos, quat, yaw, pts_t)
+        if scans is not None:
+            sample.inputs["scan_points_m"], sample.inputs["scan_counts"] = scans.sample(j, pos, yaw)
         samples.append(sample)
         points.append(pts_t)
     write_block(Path(ctx.out_path), start, samples)

@@ -31,7 +31,8 @@ class DatasetMerger:
         src = DatasetStore(dataset)
         if self.writer is None:
             W, H = src.info.image_size
-            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W))
+            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W),
+                                      scans=src.scan_dims)
             self._first = src.info
         n = self.writer.append_dataset(src, len(self.drives), f"build: merging {name}")
         self.drives += [d.model_copy(update={"name": name}) for d in src.info.drives]

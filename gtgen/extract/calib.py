@@ -98,7 +98,8 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
         topic_of[role].drop(NO_TRANSFORM, int(sum(1 for m, k in zip(meta, ok) if m[1] and not k)))
         scan.map_meta[role] = [(m[0], m[1] and bool(k), *m[2:]) for m, k in zip(meta, ok)]
     for role, frames, target in [("voxel_map", scan.voxel_frames, tp.odom_frame)] + \
-            [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS]:
+            [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS] + \
+            [(r, [scan.frames.get(r, "")] * len(scan.stamps[r]), tp.odom_frame) for r in sorted(scan.stamps) if r.startswith("lidar.")]:
         if role not in topic_of:
             continue
         t = np.asarray(scan.stamps[role], np.int64)

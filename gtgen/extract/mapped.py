@@ -22,12 +22,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.bag.decode.pointcloud import decode_pointcloud
+from gtgen.bag.decode.pointcloud import decode_scan
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, stamp_ns
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.extract.lidar import deskew
 from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan
 from gtgen.extract.voxels import padded, thinned_points
@@ -155,7 +156,11 @@ def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: s
             t = stamp_ns(msg.header)  # type: ignore[attr-defined]
             if t < start or t > times[-1]:
                 continue
-            heapq.heappush(heap, (t, n, decode_pointcloud(msg), frame_id(msg.header.frame_id)))  # type: ignore[attr-defined]
+            frame = frame_id(msg.header.frame_id)  # type: ignore[attr-defined]
+            pts, dt = decode_scan(msg)
+            if dt is not None:  # per-point times: each point put where the sensor was at the stamp
+                pts = deskew(pts, dt, tf, cfg.topics.odom_frame, frame, t)
+            heapq.heappush(heap, (t, n, pts, frame))
             n += 1
             while heap and heap[0][0] < rec_t - REORDER_NS:
                 feed(heapq.heappop(heap))

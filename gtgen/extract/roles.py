@@ -21,8 +21,13 @@ LARGE = ("camera.", "map.", "voxel_map", "lidar.")  # roles whose messages are s
 
 
 def is_large(role: str) -> bool:
-    """Whether messages of ``role`` are large (images, maps, voxel maps)."""
+    """Whether messages of ``role`` are large (images, maps, voxel maps, raw scans)."""
     return role.startswith(LARGE)
+
+
+def lidar_roles(roles: dict[str, str]) -> list[str]:
+    """Return the raw-scan roles present (``lidar.<i>``, i the index in topics.lidar), in order."""
+    return sorted((r for r in roles.values() if r.startswith("lidar.")), key=lambda r: int(r.split(".")[1]))
 
 
 def _require(topics: dict[str, TopicInfo], role: str, topic: str, kind: str) -> None:
@@ -73,6 +78,10 @@ def resolve_roles(cfg: GtgenConfig, topics: dict[str, TopicInfo]) -> dict[str, s
     if tp.gnss in topics:
         _require(topics, "gnss", tp.gnss, "gnss")
         roles[tp.gnss] = "gnss"
+    for i, topic in enumerate(tp.lidar):  # optional: a lidar the bags do not hold is skipped
+        if topic in topics:
+            _require(topics, f"lidar[{i}]", topic, "lidar")
+            roles[topic] = f"lidar.{i}"
     return roles
 
 

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import check_gridmap
 from gtgen.bag.decode.image import decode_image, intrinsics
-from gtgen.bag.decode.pointcloud import decode_pointcloud
+from gtgen.bag.decode.pointcloud import decode_pointcloud, decode_scan
 from gtgen.bag.decode.tf import frame_id, odometry_pose, quat_xyzw, transform_matrix
 from gtgen.bag.reader import BagSet, Record, stamp_ns
 from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
@@ -205,7 +205,7 @@ class Scan:
         elif s.role.startswith("map."):
             for o in ordinals:
                 self.map_meta[s.role][o] = UNUSABLE_MAP
-        elif s.role.startswith("camera.") or s.role == "voxel_map":
+        elif s.role.startswith(("camera.", "lidar.")) or s.role == "voxel_map":
             for o in ordinals:
                 self.stamps[s.role][o] = -1
                 if s.role == "voxel_map":
@@ -423,6 +423,11 @@ class _Scanner:
                 self.stager.add_voxels(i, t, data, frame)
         elif role.startswith("map."):
             self._map(role, s, i, t, msg, frame_id(hdr.frame_id), data)
+        elif role.startswith("lidar."):
+            self.scan.stamps[role].append(t)
+            self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
+            if self.stager is not None:
+                self.stager.add_scan(role, i, *data)
 
     def _stamp(self, role: str, msg: object) -> int:
         if role in ("tf_static", "tf"):
@@ -437,6 +442,8 @@ class _Scanner:
             return decode_image(msg, msgtype)
         if role == "voxel_map":
             return decode_pointcloud(msg)
+        if role.startswith("lidar."):
+            return decode_scan(msg)
         if role.startswith("map."):
             return check_gridmap(msg, self.layer_names)
         if role == "odometry":
@@ -455,7 +462,7 @@ class _Scanner:
             s.first_error = s.first_error or err
         if role.startswith("map."):
             self.scan.map_meta[role].append(UNUSABLE_MAP)
-        elif role.startswith("camera.") or role == "voxel_map":
+        elif role.startswith(("camera.", "lidar.")) or role == "voxel_map":
             self.scan.stamps[role].append(-1)
             if role == "voxel_map":
                 self.scan.voxel_frames.append("")

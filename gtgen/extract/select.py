@@ -1,7 +1,8 @@
 """Sample selection: candidate times every ``stride_m`` of travel, snapped to the front
 camera, kept only where a pose, both maps, the voxel map and all four images exist within
 their skew tolerances; every rejected candidate gets a reason code. Also which maps are
-kept (thinned to ``extract.map_rate_hz``, plus each sample's map at t)."""
+kept (thinned to ``extract.map_rate_hz``, plus each sample's map at t) and which raw
+scans (``extract.lidar.kept_scans``; they are optional: no sample is rejected for them)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import CAMERAS, GtgenConfig
+from gtgen.extract.lidar import kept_scans
 from gtgen.extract.scan import Scan
 from gtgen.extract.stage import period_ns
 
@@ -53,6 +55,9 @@ class Plan:
     map_ord: dict[str, NDArray]  # kept map ordinals per range, sorted by stamp
     map_t: dict[str, NDArray]
     sample_map: dict[str, NDArray]  # (S,) index into kept maps
+    scan_ord: dict[str, NDArray]  # per lidar role, the kept raw scans' ordinals, sorted by stamp
+    scan_t: dict[str, NDArray]  # their stamps
+    scan_dist: dict[str, NDArray]  # the travel at each [m]
 
     def skews(self) -> dict[str, float]:
         """Return the largest and mean image and voxel-map skews to the sample times [s]."""
@@ -119,6 +124,19 @@ def _kept_maps(period: int, ms: NDArray, mo: NDArray, mi: NDArray) -> tuple[NDAr
     return mo[ks], ms[ks], np.searchsorted(ks, mi)
 
 
+def _scans(cfg: GtgenConfig, track: PoseTrack, scan: Scan, t: NDArray) -> tuple[dict[str, NDArray], ...]:
+    """Return per lidar role the ordinals, stamps and travel of the raw scans kept for samples ``t``."""
+    ords, stamps, dists = {}, {}, {}
+    dist, tt = track.distance(), track.t_ns.astype(np.float64)
+    for role in sorted(r for r in scan.stamps if r.startswith("lidar.")):
+        s, o = _sorted_valid(scan.stamps[role])
+        s, o = s[track.covered(s)], o[track.covered(s)]
+        d = np.interp(s.astype(np.float64), tt, dist)
+        idx, _ = kept_scans(s, d, t, cfg.shards.scan_travel_m, int(cfg.extract.scan_skew_s * 1e9))
+        ords[role], stamps[role], dists[role] = o[idx], s[idx], d[idx]
+    return ords, stamps, dists
+
+
 def select(cfg: GtgenConfig, track: PoseTrack, scan: Scan) -> Plan:
     """Return the plan of a drive: its samples, their rejected candidates, what to keep."""
     t, reason = _candidates(cfg, track, scan)
@@ -131,11 +149,12 @@ def select(cfg: GtgenConfig, track: PoseTrack, scan: Scan) -> Plan:
     vk = np.unique(vi[keep])  # kept voxel maps, in stamp order
     kept = {r: _kept_maps(period_ns(cfg), ms, mo, mi[keep]) for r, (ms, mo, mi) in maps.items()}
     empty = np.zeros(0, np.int64)
+    scan_ord, scan_t, scan_dist = _scans(cfg, track, scan, t[keep])
     return Plan(
         t=t[keep], cand_t=t, cand_reason=reason,
         image_ord=img_ord[keep], image_t=img_t[keep],
         voxel_t=vs[vi[keep]] if len(vs) else empty, voxel_index=np.searchsorted(vk, vi[keep]),
         voxel_ord=vo[vk] if len(vo) else empty, voxel_map_t=vs[vk] if len(vs) else empty,
         map_ord={r: k[0] for r, k in kept.items()}, map_t={r: k[1] for r, k in kept.items()},
-        sample_map={r: k[2] for r, k in kept.items()},
+        sample_map={r: k[2] for r, k in kept.items()}, scan_ord=scan_ord, scan_t=scan_t, scan_dist=scan_dist,
     )

@@ -2,7 +2,7 @@
 
 The plan (sample times, kept maps) needs every stamp of the drive, so it exists only
 once all slices are read. Rather than read the bags a second time, each slice stages
-what the plan will likely keep while it reads: every image, every voxel cloud, the
+what the plan will likely keep while it reads: every image, every voxel cloud and raw scan, the
 earliest map of each thinning period and, for each front-camera frame (a sample time
 is always one), the latest map stamped at or before it. Each is written as the encoded
 chunk file it will be in the store (``storage.chunks.encode_chunk``), and once the plan
@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.decode.image import resize_image
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.extract.lidar import compact
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
 from gtgen.storage.chunks import encode_chunk, make_parent
@@ -47,6 +48,7 @@ class Staged:
     map_pose: dict[tuple[str, int], tuple[NDArray, float, str]] = field(default_factory=dict)
     map_shape: dict[str, tuple[int, int]] = field(default_factory=dict)
     voxels: dict[int, tuple[int, int, str]] = field(default_factory=dict)  # ordinal -> (points, stamp, frame); -1 points: raw .npy
+    scans: dict[tuple[str, int], tuple[int, NDArray]] = field(default_factory=dict)  # (lidar role, ordinal) -> (points, row origin shift); -1 points: raw .npy (to deskew)
 
     def chunk(self, role: str, i: int, layer: str = "") -> Path:
         """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
@@ -55,6 +57,11 @@ class Staged:
     def raw_voxels(self, i: int) -> Path:
         """Return the .npy file of voxel map ``i`` staged in its own frame (base_link)."""
         return Path(self.dir) / "voxel_map.raw" / f"{i}.npy"
+
+    def raw_scan(self, role: str, i: int) -> Path:
+        """Return the .npy file of scan ``i`` of ``role`` staged with its per-point times
+        (x, y, z [m], dt [s]): motion-corrected once the TF buffer is known."""
+        return Path(self.dir) / f"{role}.raw" / f"{i}.npy"
 
 
 class Stager:
@@ -110,6 +117,19 @@ class Stager:
         pts = thinned_points(pts, self.cfg.shards.max_voxel_points, self.cfg.shards.far_voxel_m)
         self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
         self.result.voxels[i] = (len(pts), t, frame)
+
+    def add_scan(self, role: str, i: int, pts: NDArray[np.float32], dt_s: NDArray[np.float32] | None) -> None:
+        """Stage raw scan ``i`` (slice ordinal) of lidar ``role``: its points in its sensor
+        frame, and each point's time after the stamp [s] if the cloud has them."""
+        if dt_s is not None and len(dt_s) and float(np.ptp(dt_s)) > 0:
+            f = self.result.raw_scan(role, i)
+            make_parent(f, self.made)
+            np.save(f, np.column_stack([pts, dt_s]).astype(np.float32))
+            self.result.scans[(role, i)] = (-1, np.zeros(3))
+            return
+        row, n, shift = compact(pts, self.cfg.extract.max_scan_points)
+        self._write(self.result.chunk(role, i), row)
+        self.result.scans[(role, i)] = (n, shift)
 
     def add_map(self, role: str, i: int, t: int, msg: object, ok: bool) -> None:
         """Take GridMap ``i`` (slice ordinal) of ``role`` stamped ``t``; ``ok`` is False for

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import shutil
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -16,13 +16,16 @@ from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.decode.image import decode_image, resize_image
+from gtgen.bag.decode.pointcloud import decode_scan
+from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
-from gtgen.bag.reader import BagSet
+from gtgen.bag.reader import BagSet, stamp_ns
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract import mapped
 from gtgen.extract.calib import map_to_odom
+from gtgen.extract.lidar import compact, deskew
 from gtgen.extract.roles import is_large
 from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan
@@ -30,7 +33,7 @@ from gtgen.extract.stage import STAGE, Staged
 from gtgen.extract.voxels import padded, thinned_points, to_odom_frame, voxel_points
 from gtgen.runtime.pool import BackgroundWrites, Pool
 from gtgen.storage.chunks import Runs
-from gtgen.storage.drive import DriveSamples, DriveWriter, Fixes
+from gtgen.storage.drive import DriveSamples, DriveWriter, Fixes, Scans
 from gtgen.storage.schema import MAP_LAYERS
 
 log = logging.getLogger(__name__)
@@ -67,6 +70,11 @@ def _wanted(plan: Plan) -> Want:
     for r in RANGES:
         for k_i, o in enumerate(plan.map_ord[r]):
             want[f"map.{r}"][int(o)].append(k_i)
+    base = 0
+    for role, ords in sorted(plan.scan_ord.items(), key=lambda x: int(x[0].split(".")[1])):
+        for j, o in enumerate(ords):
+            want[role][int(o)].append(base + j)
+        base += len(ords)
     return want
 
 
@@ -95,6 +103,10 @@ class Slices:
         return (self.staged[k] if self.staged else None), o - int(self._starts[role][k])
 
 
+def _cat(xs: list[NDArray], dt: type, shape: tuple[int, ...] = ()) -> NDArray:
+    return np.concatenate(xs).astype(dt) if xs else np.zeros((0, *shape), dt)
+
+
 class _Large:
     """Fills the store's images, maps and voxel clouds (see ``write_large``)."""
 
@@ -106,11 +118,25 @@ class _Large:
         self.n_points = np.zeros(len(plan.voxel_ord), np.int64)
         self.missing: Want = defaultdict(dict)
         self.raw: list[tuple[int, Path, int, str]] = []  # (index, .npy, stamp, frame) of voxel maps staged in their frame
+        self.lidars = sorted(plan.scan_ord, key=lambda r: int(r.split(".")[1]))
+        self.scan_meta = self._scan_meta()
+        self.raw_scans: list[tuple[list[int], Path, str]] = []  # (scan indexes, .npy, role) of scans staged with per-point times
+
+    def _scan_meta(self) -> Scans:
+        """The kept scans' rows (points counted as they are placed), sensor poses from TF."""
+        p, odom = self.plan, self.cfg.topics.odom_frame
+        t = [p.scan_t[r] for r in self.lidars]
+        T = [self.tf.lookup(odom, self.scan.frames.get(r, ""), tt)[0] if self.scan.frames.get(r, "") not in ("", odom)
+             else np.broadcast_to(np.eye(4), (len(tt), 4, 4)) for r, tt in zip(self.lidars, t)]
+        return Scans(_cat(t, np.int64), _cat([np.full(len(tt), int(r.split(".")[1])) for r, tt in zip(self.lidars, t)], np.uint8),
+                     np.zeros(sum(len(tt) for tt in t), np.int64), _cat([p.scan_dist[r] for r in self.lidars], np.float64),
+                     _cat(T, np.float64, (4, 4)))
 
     def create_arrays(self) -> None:
         W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
         maps = {r: (len(self.plan.map_t[r]), *self.scan.map_shape[f"map.{r}"], self.cfg.topics.odom_frame) for r in RANGES}
-        self.w.create_large(len(self.plan.t), (H, W), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points)
+        self.w.create_large(len(self.plan.t), (H, W), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points,
+                            len(self.scan_meta), self.cfg.extract.max_scan_points)
         self.vox = self.w.voxels()
 
     def place_staged(self, want: Want) -> None:
@@ -137,6 +163,17 @@ class _Large:
             else:
                 self.w.place_voxels(stg.chunk("voxel_map", i), targets)
                 self.n_points[targets] = got[0]
+        for role in self.lidars:
+            for o, targets in want[role].items():
+                stg, i = self.slices.locate(role, o)
+                got = stg.scans.get((role, i)) if stg else None
+                if got is None:
+                    self.missing[role][o] = targets
+                elif got[0] < 0:
+                    self.raw_scans.append((targets, stg.raw_scan(role, i), role))
+                else:
+                    self.w.place_scan(stg.chunk(role, i), targets)
+                    self._counted(targets, *got)
 
     def _place_maps(self, r: str, want: dict[int, list[int]]) -> None:
         role = f"map.{r}"
@@ -171,24 +208,43 @@ class _Large:
                 for v, pts in got.voxels.items():
                     self.n_points[v] = len(pts)
                     writes.submit(self.vox.__setitem__, v, padded(pts, P))
+                for ls, (row, n, shift) in got.scans.items():
+                    self._put_scan(writes, list(ls), row, n, shift)
             for v, f, t, frame in self.raw:
                 pts = thinned_points(to_odom_frame(np.load(f), self.cfg, self.tf, frame, t), P, self.cfg.shards.far_voxel_m)
                 self.n_points[v] = len(pts)
                 writes.submit(self.vox.__setitem__, v, padded(pts, P))
+            for ls, f, role in self.raw_scans:
+                raw = np.load(f)
+                pts = deskew(raw[:, :3], raw[:, 3], self.tf, self.cfg.topics.odom_frame, self.scan.frames.get(role, ""), int(self.scan_meta.t_ns[ls[0]]))
+                self._put_scan(writes, ls, *compact(pts, self.cfg.extract.max_scan_points))
         n_missing = sum(len(v) for v in self.missing.values())
         log.debug("extract: %d kept messages not staged: %s", n_missing, {r: len(v) for r, v in self.missing.items() if v})
         if seen != n_missing:
             raise BagError(f"bags ended before every selected message was read ({seen} of {n_missing} messages)")
         return n_missing
 
+    def _counted(self, ls: list[int], n: int, shift: NDArray) -> None:
+        """Note scans ``ls``'s points and move their pose to their rows' origin (``lidar.compact``)."""
+        self.scan_meta.n_points[ls] = n
+        T = self.scan_meta.T_odom_sensor
+        T[ls, :3, 3] += T[ls, :3, :3] @ shift
+
+    def _put_scan(self, writes: BackgroundWrites, ls: list[int], row: NDArray, n: int, shift: NDArray) -> None:
+        arr = self.w.scan_array()
+        self._counted(ls, n, shift)
+        for sc in ls:
+            writes.submit(arr.__setitem__, sc, row)
+
     def finish(self) -> None:
-        self.w.finish_large(self.n_points, {r: (self.plan.map_t[r], self.centers[r], self.yaws[r], self.z0[r]) for r in RANGES})
+        self.w.finish_large(self.n_points, {r: (self.plan.map_t[r], self.centers[r], self.yaws[r], self.z0[r]) for r in RANGES},
+                            self.scan_meta)
         shutil.rmtree(self.tmp / STAGE, ignore_errors=True)
 
 
 def write_large(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
                 tf: TfBuffer, track: PoseTrack, plan: Plan, slices: Slices, pool: Pool, lidar: list[str]) -> int:
-    """Put the plan's images, maps and voxel clouds in the store (the ones made from the raw
+    """Put the plan's images, maps, voxel clouds and raw scans in the store (the ones made from the raw
     scans on ``lidar`` by the mapping pass); return how many kept messages no slice had
     staged (read in a second pass)."""
     large = _Large(w, cfg, scan, plan, slices, tf)
@@ -212,6 +268,7 @@ class SliceOut:
     selected: int
     maps: dict[tuple[str, int], tuple[NDArray, float, float]]  # (range, kept index) -> centre, yaw, height in odom
     voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
+    scans: dict[tuple[int, ...], tuple[NDArray, int, NDArray]] = field(default_factory=dict)  # kept scan indexes -> (stored row, points, origin shift)
 
 
 def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
@@ -249,6 +306,11 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
                 pts = voxel_points(msg, cfg, tf)
                 for v in targets:
                     out.voxels[v] = pts
+            elif role.startswith("lidar."):
+                pts, dt = decode_scan(msg)
+                if dt is not None:
+                    pts = deskew(pts, dt, tf, tp.odom_frame, frame_id(msg.header.frame_id), stamp_ns(msg.header))  # type: ignore[attr-defined]
+                out.scans[tuple(targets)] = compact(pts, cfg.extract.max_scan_points)
             else:
                 r = role.split(".")[1]
                 g = decode_gridmap(msg, list(layer_names))

@@ -17,7 +17,16 @@ from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig, stored_config
 from gtgen.runtime.progress import track
 from gtgen.storage.chunks import Encoded, RowAppender, encode_row
-from gtgen.storage.schema import COORDS, DATASET, POINTS_PER_CHUNK, SAMPLE_ARRAYS, SAMPLES_PER_SHARD, TIME_ATTRS, DatasetAttrs
+from gtgen.storage.schema import (
+    COORDS,
+    DATASET,
+    POINTS_PER_CHUNK,
+    SAMPLE_ARRAYS,
+    SAMPLES_PER_SHARD,
+    SCAN_ARRAYS,
+    TIME_ATTRS,
+    DatasetAttrs,
+)
 from gtgen.storage.shards import chunks_like_gtgen, copy_samples, sample_layout, samples_per_shard, shard_file, write_shard
 from gtgen.storage.specs import row_shape
 from gtgen.storage.stores import Rows, Store, StoreWriter
@@ -118,6 +127,18 @@ class DatasetStore(Store):
         the N-scan point input (``train.geometry: scans``)."""
         return any(name.startswith("scan") for name in self.group["inputs"].array_keys())
 
+    @property
+    def scan_dims(self) -> tuple[int, int] | None:
+        """(P_s points, N_s scans) of the stored N-scan input, None without raw scans."""
+        if not self.has_scans:
+            return None
+        return self.shape("inputs/scan_points_m")[1], self.shape("inputs/scan_counts")[1]
+
+    def scan_input(self) -> tuple[Rows, Rows]:
+        """Return the readers of the N-scan input: points (P_s, 3) in the target frame [m]
+        (NaN after the last) and, per age a, the points of the scans of age < a + 1 (N_s,)."""
+        return self._rows("inputs/scan_points_m"), self._rows("inputs/scan_counts")
+
     def voxel_offsets(self) -> NDArray[np.int64]:
         """Return (S + 1,): sample s owns voxel points offsets[s]:offsets[s + 1]."""
         return self.read("inputs/voxel_offsets")
@@ -174,15 +195,19 @@ class ShardWriter(StoreWriter):
 
     fmt = DATASET
 
-    def __init__(self, path: Path, max_samples: int, micro: int, short: int, image_hw: tuple[int, int]) -> None:
+    def __init__(self, path: Path, max_samples: int, micro: int, short: int, image_hw: tuple[int, int],
+                 scans: tuple[int, int] | None = None) -> None:
         super().__init__(path)
         _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
         dims = {"n_m": micro, "n_s": short, "H": image_hw[0], "W": image_hw[1]}
+        if scans is not None:
+            dims.update({"P_s": scans[0], "N_s": scans[1]})
         self.arrays: dict[str, Any] = {}
         K = SAMPLES_PER_SHARD
-        for s in SAMPLE_ARRAYS:
+        for s in SAMPLE_ARRAYS + (SCAN_ARRAYS if scans is not None else ()):
             inner = row_shape(s, dims)
             self.arrays[s.path] = self.create(s.path, (max(max_samples, 1), *inner), chunks=(1, *inner), shards=(K, *inner))
+        self._scan_dims = scans
         self.points = self.create("inputs/voxel_points_m", (POINTS_PER_CHUNK, 3), chunks=(POINTS_PER_CHUNK, 3))
         self.rows = RowAppender(self.points)
         self.offsets = [0]
@@ -213,6 +238,8 @@ class ShardWriter(StoreWriter):
         self._ensure(off + S)
 
         def one(p: str) -> None:
+            if p.startswith("inputs/scan_") and src.scan_dims != self._scan_dims:
+                return  # a drive without raw scans (or with another N-scan layout): its samples have none
             if not copy_samples(src.array(p), src.path, self.root, self.path, p, off, S, check=src.manifest.check):
                 for a0 in range(0, S, SAMPLES_PER_SHARD):
                     self.arrays[p][off + a0 : off + min(a0 + SAMPLES_PER_SHARD, S)] = src.read(p, slice(a0, a0 + SAMPLES_PER_SHARD))
@@ -338,7 +365,7 @@ def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
         _LAYOUT.clear()
         root = zarr.open_group(path, mode="r")
         layout = {}
-        for s in SAMPLE_ARRAYS:
+        for s in SAMPLE_ARRAYS + tuple(sp for sp in SCAN_ARRAYS if sp.path in root):
             arr = root[s.path]
             meta = sample_layout(arr)
             ok = meta is not None and samples_per_shard(meta) == SAMPLES_PER_SHARD and chunks_like_gtgen(meta, arr.dtype)

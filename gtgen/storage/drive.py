@@ -95,6 +95,21 @@ class MapStream:
         return elev, risk, conf
 
 
+@dataclass(frozen=True)
+class Scans:
+    """The kept raw scans: stamps [ns], lidar (index into topics.lidar), points, travel at
+    the stamp [m], sensor pose in odom at the stamp; sorted by lidar, then stamp."""
+
+    t_ns: NDArray[np.int64]
+    lidar: NDArray[np.uint8]
+    n_points: NDArray[np.int64]
+    distance_m: NDArray[np.float64]
+    T_odom_sensor: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
 class DriveStore(Store):
     """A complete drive store, read by name."""
 
@@ -165,6 +180,16 @@ class DriveStore(Store):
         """Return voxel maps ``vs`` (sorted): (len(vs), P, 3) points in odom [m], NaN-padded."""
         return self.read("voxel_maps/points_odom_m", vs)
 
+    @cached_property
+    def scans(self) -> Scans:
+        """The kept raw scans (none: the drive has no lidar role)."""
+        return Scans(*(self.read(f"scans/{n}") for n in ("t_ns", "lidar", "n_points", "distance_m", "T_odom_sensor")))
+
+    def scan_rows(self, ls: NDArray) -> NDArray[np.int16]:
+        """Return scans ``ls`` (sorted): (len(ls), Q, 3) int16 cm in the sensor frame,
+        ``extract.lidar.FILL`` past each scan's points (``extract.lidar.expand``)."""
+        return self.read("scans/points_cm", ls)
+
 
 class DriveWriter(StoreWriter):
     """A drive store being written: the small arrays whole, the images, maps and voxel
@@ -208,9 +233,10 @@ class DriveWriter(StoreWriter):
         self.write("calib/K", K)
 
     def create_large(self, S: int, image_hw: tuple[int, int], maps: dict[str, tuple[int, tuple[int, int], float, str]],
-                     V: int, P: int) -> None:
-        """Create the image, map and voxel arrays: ``maps`` gives per range (kept maps, grid
-        shape, cell size [m], frame). One chunk per image, map layer and voxel map."""
+                     V: int, P: int, L: int = 0, Q: int = 1) -> None:
+        """Create the image, map, voxel and raw scan arrays: ``maps`` gives per range (kept
+        maps, grid shape, cell size [m], frame); L scans of Q points. One chunk per image,
+        map layer, voxel map and scan."""
         H, W = image_hw
         self.create("samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3), flat=True)
         for r, (n, shape, res, frame) in maps.items():
@@ -218,6 +244,7 @@ class DriveWriter(StoreWriter):
                 self.create(f"maps/{r}/{name}", (n, *shape), chunks=(1, *shape), flat=True)
             self.root[f"maps/{r}"].attrs.update({"resolution_m": res, "shape": list(shape), "frame": frame})
         self.create("voxel_maps/points_odom_m", (V, P, 3), chunks=(1, P, 3), flat=True)
+        self.create("scans/points_cm", (L, Q, 3), chunks=(1, Q, 3), flat=True)
 
     def images(self) -> Any:
         """Return the zarr array of the images (for batched writes)."""
@@ -230,6 +257,10 @@ class DriveWriter(StoreWriter):
     def voxels(self) -> Any:
         """Return the zarr array of the voxel clouds."""
         return self.root["voxel_maps/points_odom_m"]
+
+    def scan_array(self) -> Any:
+        """Return the zarr array of the raw scans."""
+        return self.root["scans/points_cm"]
 
     def _place(self, src: Path, path: str, coords: list[tuple[int, ...]]) -> None:
         """Make the chunks ``coords`` of ``path`` hold staged chunk file ``src`` (the last
@@ -251,9 +282,15 @@ class DriveWriter(StoreWriter):
         """Put staged voxel-cloud chunk ``src`` at voxel maps ``vs``."""
         self._place(src, "voxel_maps/points_odom_m", [(v, 0, 0) for v in vs])
 
-    def finish_large(self, n_points: NDArray, maps: dict[str, tuple[NDArray, NDArray, NDArray, NDArray]]) -> None:
-        """Write each voxel map's point count and per range the kept maps' (stamps, centres
-        in odom, yaw in odom, height offset)."""
+    def place_scan(self, src: Path, ls: list[int]) -> None:
+        """Put staged scan chunk ``src`` at scans ``ls``."""
+        self._place(src, "scans/points_cm", [(sc, 0, 0) for sc in ls])
+
+    def finish_large(self, n_points: NDArray, maps: dict[str, tuple[NDArray, NDArray, NDArray, NDArray]], scans: Scans) -> None:
+        """Write each voxel map's point count, per range the kept maps' (stamps, centres
+        in odom, yaw in odom, height offset), and the kept scans' rows but their points."""
+        for name in ("t_ns", "lidar", "n_points", "distance_m", "T_odom_sensor"):
+            self.write(f"scans/{name}", getattr(scans, name))
         self.write("voxel_maps/n_points", n_points)
         for r, (t, centers, yaws, z0) in maps.items():
             self.write(f"maps/{r}/t_ns", t)

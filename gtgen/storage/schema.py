@@ -6,7 +6,8 @@ A store is a Zarr v3 group whose attributes say its ``store`` kind, its version 
 these lists and ``tests/test_schema_doc.py`` checks that they agree. Shape symbols: N
 poses, G fixes, M_r kept maps of range r, C candidates, S samples, V voxel maps, R
 rejected samples, n_m / n_s micro / short cells per side, H x W the stored image size,
-P voxel points. The target frame of a sample is vehicle-centric and gravity-aligned at
+P voxel points, L kept raw scans, Q = extract.max_scan_points, P_s =
+shards.max_scan_points, N_s = shards.max_scans. The target frame of a sample is vehicle-centric and gravity-aligned at
 its time t (see data_schema.md).
 """
 
@@ -79,9 +80,15 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
     ArraySpec("samples/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics at each image's stamp (TF)"),
     ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
+    ArraySpec("scans/t_ns", "int64", "(L,)", "ns", "-", "-", "header stamp of each kept raw scan (lidar role; sorted by lidar, then stamp)"),
+    ArraySpec("scans/lidar", "uint8", "(L,)", "-", "-", "-", "the scan's lidar: index into topics.lidar of the stored config"),
+    ArraySpec("scans/n_points", "int64", "(L,)", "-", "-", "-", "points of each scan (at most extract.max_scan_points, the nearest kept)"),
+    ArraySpec("scans/distance_m", "float64", "(L,)", "m", "-", "-", "odometry travel at the scan's stamp"),
+    ArraySpec("scans/T_odom_sensor", "float64", "(L, 4, 4)", "m", "odom <- sensor", "-", "pose of the rows' origin at the stamp: the lidar (TF), or for a cloud far from its frame's origin that frame shifted to the cloud's median (extract.lidar.compact)"),
+    ArraySpec("scans/points_cm", "int16", "(L, Q, 3)", "cm", "sensor at the stamp", "-32768", "points of scan l in rows [0, n_points[l]), motion-corrected to the stamp if the cloud has per-point times; one chunk per scan"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 4, tuple(_DRIVE), "gtgen extract BAG")
+DRIVE = StoreFormat("gtgen-drive", 5, tuple(_DRIVE), "gtgen extract BAG")
 
 
 # -- the fused store (``gtgen fuse``) ------------------------------------------------------
@@ -133,6 +140,8 @@ _DATASET += [
     ArraySpec("inputs/raw_elevation_m", "float32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell"),
     ArraySpec("inputs/voxel_offsets", "int64", "(S + 1,)", "-", "-", "0", "sample s owns voxel_points_m[offsets[s]:offsets[s+1]]"),
     ArraySpec("inputs/voxel_points_m", "float32", "(P, 3)", "m", _TGT, "0", "voxel map points, flat"),
+    ArraySpec("inputs/scan_points_m", "float32", "(S, P_s, 3)", "m", _TGT, "NaN", "only with raw scans: the N-scan input, the last N_s scans of every lidar at least shards.scan_travel_m apart within the short grid, voxel-filtered (first point per shards.scan_voxel_m voxel, newest scan first), in that order; the newest P_s kept"),
+    ArraySpec("inputs/scan_counts", "int32", "(S, N_s)", "-", "-", "0", "only with raw scans: points of the scans of age < a + 1 (a prefix of scan_points_m); the filtered last n scans are rows [0, scan_counts[n - 1])"),
     ArraySpec("meta/t_ns", "int64", "(S,)", "ns", "-", "0", "sample time"),
     ArraySpec("meta/drive", "uint16", "(S,)", "-", "-", "0", "index into the attribute 'drives'"),
     ArraySpec("meta/pos_odom_m", "float64", "(S, 3)", "m", "odom", "0", "base position at t"),
@@ -170,10 +179,12 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 4, tuple(_DATASET + COORDS), "gtgen dem-align")
+DATASET = StoreFormat("gtgen-dataset", 5, tuple(_DATASET + COORDS), "gtgen dem-align")
 
-# the arrays with one row per sample (sharded along the sample axis)
-SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_")))
+# the arrays with one row per sample (sharded along the sample axis); the N-scan input's
+# are there only when the drives have raw scans
+SCAN_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if s.path.startswith("inputs/scan_"))
+SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_", "inputs/scan_")))
 
 FORMATS = {f.kind: f for f in (DRIVE, FUSED, DATASET)}
 

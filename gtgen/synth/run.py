@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 
 from gtgen.bag.messages import MessageFactory, open_mcap_writer
-from gtgen.config import GtgenConfig, save_config
+from gtgen.config import LIDARS, GtgenConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
 from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
-from gtgen.synth import sensors
+from gtgen.synth import lidar, sensors
 from gtgen.synth.drive import gnss_errors, gnss_outage
 from gtgen.synth.world import SynthWorld
 
@@ -169,6 +169,8 @@ class _Ticker:
         self.gnss_p = _period(sc.odom_rate_hz, sc.gnss_rate_hz, "gnss_rate_hz")
         self.cam_p = _period(sc.odom_rate_hz, sc.camera_rate_hz, "camera_rate_hz")
         self.vox_p = _period(sc.odom_rate_hz, sc.voxel_rate_hz, "voxel_rate_hz")
+        self.scan_p = _period(sc.odom_rate_hz, sc.scan_rate_hz, "scan_rate_hz") if sc.scan_rate_hz > 0 else 0
+        self.T_base_lidar = {n: lidar.T_base_lidar(n) for n in LIDARS}
         gnss_idx = np.arange(0, self.n, self.gnss_p)
         self.gnss_err = gnss_errors(sc, world.t_ns[gnss_idx])
         self.gnss_off = gnss_outage(sc, world.t_ns[gnss_idx])
@@ -194,6 +196,7 @@ class _Ticker:
         static = [(tp.base_frame, camera_frame(c), T[:3, 3], matrix_to_quat(T[:3, :3])) for c, T in self.T_base_cam.items()]
         static.append((tp.base_frame, LIDAR_FRAME, np.array(sensors.LIDAR_MOUNT), np.array([0, 0, 0, 1.0])))
         static.append((tp.base_frame, GNSS_FRAME, np.zeros(3), np.array([0, 0, 0, 1.0])))
+        static += [(tp.base_frame, lidar.lidar_frame(n), T[:3, 3], matrix_to_quat(T[:3, :3])) for n, T in self.T_base_lidar.items()]
         out: list = []
         self._msg(out, tp.tf_static, "tf2_msgs/msg/TFMessage", t0, lambda f: f.tf_message([f.transform_stamped(t0, *s) for s in static]))
         return out
@@ -215,7 +218,19 @@ class _Ticker:
             self._voxel_map(out, k, view)
         if k % self.cam_p == 0:
             self._cameras(out, k)
+        if self.scan_p and k % self.scan_p == 0:
+            self._scans(out, k)
         return out
+
+    def _scans(self, out: list, k: int) -> None:
+        """One scan of each lidar, cast from the true pose at the tick (on topics.lidar, in order)."""
+        sc, tp = self.cfg.synth, self.cfg.topics
+        t = int(self.world.t_ns[k])
+        T_wb = make_transform(quat_to_matrix(self.q_true[k]), self.world.poses.pos[k])
+        for i, (name, topic) in enumerate(zip(LIDARS, tp.lidar)):
+            pts = lidar.scan_points(sc, self.raster, T_wb @ self.T_base_lidar[name], np.random.default_rng([sc.seed, 14, k, i]))
+            frame, seq = lidar.lidar_frame(name), k // self.scan_p
+            self._msg(out, topic, "sensor_msgs/msg/PointCloud2", t, lambda f, frame=frame, pts=pts, seq=seq: f.pointcloud(t, frame, pts, seq))
 
     def _odometry(self, out: list, k: int) -> None:
         tp, odom = self.cfg.topics, self.world.odom

@@ -16,9 +16,10 @@ from torch.utils.data import Dataset
 
 from gtgen import codes
 from gtgen.config import TrainConfig
+from gtgen.dataset.scans import first_per_voxel
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
-from gtgen.grids import bilinear, filled, nearest_index, point_distance, smoothed_min_z
+from gtgen.grids import bilinear, filled, nearest_index, point_distance, raw_min_z, smoothed_min_z
 from gtgen.storage.dataset import DatasetStore
 from gtgen.train.model import bev_grid
 
@@ -40,20 +41,6 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
     each taking the source cell its centre lies in (NaN stays NaN)."""
     ix = np.clip(np.floor(centre_half_coords(raw.shape[0], n_dst) + 0.5).astype(np.int64), 0, raw.shape[0] - 1)
     return raw[np.ix_(ix, ix)]
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 # why a dataset cannot give the N-scan input, and how to get it
@@ -80,11 +67,14 @@ class ShardDataset(Dataset):
                                                          normalises them: ``model.normalize_images``)
     K                            (4, 3, 3), float32      intrinsics at the model's image size [px]
     T_target_cam                 (4, 4, 4), float32      target <- camera optical [m]
-    points, n_points             (P, 3) float32, ()      voxel points in the target frame [m], the
-                                                         first n_points valid (P = max_points,
-                                                         default shards.max_voxel_points)
+    points, n_points             (P, 3) float32, ()      voxel points (train.geometry: scans, the
+                                                         last n_scans scans) in the target frame
+                                                         [m], the first n_points valid (P =
+                                                         max_points, default shards.max_voxel_points
+                                                         / the stored N-scan input's points)
     raw                          (2, n_b, n_b), float32  min-z per BEV cell / elevation_clip_m
-                                                         (0 where none), and its validity (0/1)
+                                                         (0 where none), and its validity (0/1);
+                                                         of the scans with train.geometry: scans
     prior, prior_micro           (2, n, n), float32      smoothed min z filled everywhere (scaled
                                                          like raw), distance to the nearest cell
                                                          with points / grid size; over the BEV
@@ -105,8 +95,12 @@ class ShardDataset(Dataset):
         self.tc = tc
         self.data_cfg = store.config
         self.store = store
-        if tc.points and tc.geometry == "scans" and not store.has_scans:
+        self.scans = tc.points and tc.geometry == "scans"
+        if self.scans and not store.has_scans:
             raise TrainError(f"dataset '{path}' {NO_SCANS}")
+        if self.scans and tc.n_scans > store.scan_dims[1]:
+            raise TrainError(f"train.n_scans = {tc.n_scans}, but dataset '{path}' stores the last {store.scan_dims[1]} scans "
+                             "(shards.max_scans); expected at most that, or rebuild it with a larger shards.max_scans")
         idx = np.arange(store.n_samples)
         if split is not None:
             code = codes.split_code(split)
@@ -114,7 +108,7 @@ class ShardDataset(Dataset):
         self.indices = idx
         # every stored point by default (the store keeps at most shards.max_voxel_points):
         # PointPillars caps pillars, not points
-        self.max_points = max_points or self.data_cfg.shards.max_voxel_points
+        self.max_points = max_points or (store.scan_dims[0] if self.scans else self.data_cfg.shards.max_voxel_points)
         self._r: dict | None = None
         self._offsets = store.voxel_offsets()
         self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
@@ -162,6 +156,8 @@ class ShardDataset(Dataset):
             st = self.store
             self._r = {n: st.inputs(n) for n in ("images", "K", "T_target_base", "T_base_cam", "raw_elevation_m")}
             self._r["points"] = st.voxel_points()
+            if self.scans:
+                self._r["scan_points"], self._r["scan_counts"] = st.scan_input()
             self._r.update({(kind, r, a): st.grid(kind, r, a) for r in ("micro", "short") for kind, a in
                             (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"),
                              ("xracer", "risk"))})
@@ -191,9 +187,9 @@ class ShardDataset(Dataset):
             out["K"] = torch.from_numpy(K.astype(np.float32))
             T = g["T_target_base"][k] @ g["T_base_cam"][k]
             out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))
+        scan_pts = self._scan_points(g, k) if self.scans else None
         if tc.points:
-            a, b = self._offsets[k], self._offsets[k + 1]
-            pts = g["points"](a, b)
+            pts = scan_pts if scan_pts is not None else g["points"](self._offsets[k], self._offsets[k + 1])
             if len(pts) > self.max_points:
                 pts = pts[np.linspace(0, len(pts) - 1, self.max_points).astype(np.int64)]
             padded = np.zeros((self.max_points, 3), np.float32)
@@ -212,9 +208,12 @@ class ShardDataset(Dataset):
         # micro view is exactly its centre half
         raw_s = g["raw_elevation_m"][k]
         n_s = raw_s.shape[0]
-        raw = self._grid(raw_s, "short")
-        raw_m = micro_view(raw_s, tc.micro_size)
+        raw = base = self._grid(raw_s, "short")
+        raw_m = base_m = micro_view(raw_s, tc.micro_size)
         if tc.raw_elevation:
+            if scan_pts is not None:  # the N-scan input replaces the voxel map in the network's inputs (not in the baselines)
+                raw_s = raw_min_z(scan_pts, n_s, self.data_cfg.grids.short.length_m / n_s)
+                raw, raw_m = self._grid(raw_s, "short"), micro_view(raw_s, tc.micro_size)
             # the priors the heads correct, each grid at its own resolution, scaled like "raw":
             # (smoothed min z filled everywhere, distance to the nearest cell with points)
             bev = raw if tc.ranges != "micro" else micro_view(raw_s, self._bev_size)
@@ -223,7 +222,16 @@ class ShardDataset(Dataset):
             if "micro" in ranges:
                 fine = tc.micro_size > n_s // 2  # finer than the points' grid: computed on it, then resampled
                 out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s) if fine else self._prior(raw_m, self._prior_win["micro"]))
-        for r, grid in (("micro", raw_m), ("short", raw)):
+        for r, grid in (("micro", base_m), ("short", base)):
             if r in ranges:
                 out[f"{r}/raw_elevation"] = torch.from_numpy(grid.astype(np.float32))
         return out
+
+    def _scan_points(self, g: dict, k: int) -> NDArray[np.float32]:
+        """Return sample ``k``'s last ``n_scans`` scans (a prefix of the stored N-scan input),
+        voxel-filtered again when ``train.scan_voxel_m`` is not the stored filter's edge."""
+        n = int(g["scan_counts"][k][self.tc.n_scans - 1])
+        pts = g["scan_points"][k][:n]
+        if self.tc.scan_voxel_m != self.data_cfg.shards.scan_voxel_m:
+            pts = pts[first_per_voxel(pts, self.tc.scan_voxel_m)]
+        return pts
