@@ -270,3 +270,17 @@ def test_voxel_memory_holds_the_voxels_of_the_last_memory_s_in_the_window():
                     want.add(tuple(k))
     got = {tuple(k) for k in np.floor(vm.points(t, c) / 0.5).astype(int)}
     assert got == want and len(want) > 300
+
+
+@pytest.mark.parametrize("res", [0.2, 0.8])
+def test_a_smooth_slope_is_slope_not_step_or_roughness_at_any_cell_size(res):
+    from gtgen.mapping.layers import geometry
+
+    x = (np.arange(40) + 0.5) * res
+    g = np.tan(np.radians(20.0)) * x[:, None] + 0.0 * x[None, :]
+    geo = geometry(g, res, 3)
+    assert np.allclose(geo["slope"][1:-1, 1:-1], 20.0, atol=0.01)
+    assert geo["step"][1:-1, 1:-1].max() < 1e-9 and geo["roughness"][1:-1, 1:-1].max() < 1e-6
+    g[20, 20] += 0.5  # a 0.5 m block: a step at it and its neighbours, whatever the slope
+    geo = geometry(g, res, 3)
+    assert geo["step"][20, 20] > 0.45 and geo["step"][19, 20] > 0.3 and geo["step"][10, 10] < 1e-9

@@ -57,7 +57,7 @@ def report(
             rows.append((f"truth {r} fused vs single map", f"{na(fv['fused_mae_m'], ' m')} vs {na(fv['single_map_mae_m'], ' m')} on {fv['cells']} cells"))
             fr = t[r].get("fatal_risk")
             if fr:
-                rows.append((f"truth {r} fatal risk", f"precision {na(fr['precision'])}, recall {na(fr['recall'])} on {fr['cells']} observed cells"))
+                rows.append((f"truth {r} fatal risk", f"precision {na(fr['precision'])}, recall {na(fr['recall'])} against the truth's obstacles on {fr['cells']} observed cells"))
         d = t["dem_alignment"]
         hv, ha, vv = d["horizontal_at_vehicle_m"], d["horizontal_50m_ahead_m"], d["vertical_m"]
         rows.append(("DEM alignment error", f"horizontal median {na(hv.get('median'), ' m')} (max {na(hv.get('max'), ' m')}), "

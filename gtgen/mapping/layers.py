@@ -38,40 +38,56 @@ def neighbourhood_cells(cfg: MappingConfig, res: float) -> int:
 
 
 def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
-    """Return the step [m], slope [deg] and roughness [m] of ``ground`` (NaN: no ground) per cell,
-    each over the k x k neighbourhood's cells that have ground; NaN where the cell has none."""
+    """Return the step [m], slope [deg] and roughness [m] of ``ground`` (NaN: no ground) per
+    cell, from the plane fitted (least squares) through the k x k neighbourhood's cells that
+    have ground: slope is the plane's, roughness the std of the cells about it, and step the
+    largest jump from the cell to a neighbour beyond what the plane's slope explains. So a
+    smooth slope is slope, not step or roughness, at any cell size. NaN where no ground."""
     valid = np.isfinite(ground)
     ref = float(np.median(ground[valid])) if valid.any() else 0.0
     g = np.where(valid, ground - ref, 0.0)
-    hi = ndimage.maximum_filter(np.where(valid, g, -np.inf), size=k, mode="nearest")
-    lo = ndimage.minimum_filter(np.where(valid, g, np.inf), size=k, mode="nearest")
-    w = ndimage.uniform_filter(valid.astype(np.float64), size=k, mode="constant")
-    m1 = ndimage.uniform_filter(g, size=k, mode="constant") / np.maximum(w, 1e-9)
-    m2 = ndimage.uniform_filter(g * g, size=k, mode="constant") / np.maximum(w, 1e-9)
-    rough = np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
-    # slope from the plane through the neighbourhood's mean gradient: central differences
-    # where both neighbours have ground, one-sided where one has
-    gx = _derivative(g, valid, 0) / res
-    gy = _derivative(g, valid, 1) / res
-    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
+    v = valid.astype(np.float64)
+    c = k // 2
+    off = (np.arange(k) - c) * res
+    KX, KY = np.meshgrid(off, off, indexing="ij")  # axis 0 = x
+
+    def corr(a: NDArray, kern: NDArray) -> NDArray:
+        return ndimage.correlate(a, kern, mode="constant", cval=0.0)
+
+    one = np.ones((k, k))
+    Sw, Sx, Sy = corr(v, one), corr(v, KX), corr(v, KY)
+    Sxx, Syy, Sxy = corr(v, KX * KX), corr(v, KY * KY), corr(v, KX * KY)
+    Sg, Sxg, Syg, Sgg = corr(g, one), corr(g, KX), corr(g, KY), corr(g * g, one)
+    A = np.stack([np.stack([Sw, Sx, Sy], -1), np.stack([Sx, Sxx, Sxy], -1), np.stack([Sy, Sxy, Syy], -1)], -2)
+    rhs = np.stack([Sg, Sxg, Syg], -1)
+    fit = valid & (Sw >= 4)
+    det = np.zeros_like(Sw)
+    det[fit] = np.linalg.det(A[fit])
+    fit &= np.abs(det) > 1e-9 * res**4 * np.maximum(Sw, 1) ** 3
+    p = np.zeros((*g.shape, 3))
+    p[..., 0] = np.where(Sw > 0, Sg / np.maximum(Sw, 1e-9), 0.0)  # no plane: the mean, level
+    if fit.any():
+        p[fit] = np.linalg.solve(A[fit], rhs[fit][..., None])[..., 0]
+    a0, bx, by = p[..., 0], p[..., 1], p[..., 2]
+    var = (Sgg - (a0 * Sg + bx * Sxg + by * Syg)) / np.maximum(Sw, 1e-9)
+    rough = np.sqrt(np.maximum(var, 0.0))
+    slope = np.degrees(np.arctan(np.hypot(bx, by)))
+    step = np.zeros_like(g)
+    H, W = g.shape
+    for i in range(k):  # a loop over the k x k offsets, each a whole-grid operation
+        for j in range(k):
+            di, dj = i - c, j - c
+            if di == 0 and dj == 0:
+                continue
+            gn = np.zeros_like(g)
+            vn = np.zeros_like(valid)
+            src = (slice(max(di, 0), H + min(di, 0)), slice(max(dj, 0), W + min(dj, 0)))
+            dst = (slice(max(-di, 0), H + min(-di, 0)), slice(max(-dj, 0), W + min(-dj, 0)))
+            gn[dst], vn[dst] = g[src], valid[src]
+            jump = np.abs(gn - g - (bx * di * res + by * dj * res))
+            step = np.maximum(step, np.where(vn, jump, 0.0))
     nan = ~valid
-    return {"step": np.where(nan, np.nan, hi - lo), "slope": np.where(nan, np.nan, slope), "roughness": np.where(nan, np.nan, rough)}
-
-
-def _derivative(g: NDArray, valid: NDArray, axis: int) -> NDArray:
-    """Return d g / d index along ``axis`` from the neighbours that have ground (0 where neither has)."""
-    def shifted(a: NDArray, d: int, fill: float | bool) -> NDArray:
-        out = np.full_like(a, fill)
-        src = [slice(None)] * 2
-        dst = [slice(None)] * 2
-        src[axis], dst[axis] = (slice(1, None), slice(None, -1)) if d > 0 else (slice(None, -1), slice(1, None))
-        out[tuple(dst)] = a[tuple(src)]
-        return out
-
-    up, vu = shifted(g, 1, 0.0), shifted(valid, 1, False)
-    dn, vd = shifted(g, -1, 0.0), shifted(valid, -1, False)
-    both = vu & vd
-    return np.where(both, (up - dn) / 2, np.where(vu, up - g, np.where(vd, g - dn, 0.0)))
+    return {"step": np.where(nan, np.nan, step), "slope": np.where(nan, np.nan, slope), "roughness": np.where(nan, np.nan, rough)}
 
 
 def layers(cells: dict[str, NDArray], cfg: MappingConfig, res: float, center: NDArray) -> MapLayers:

@@ -98,9 +98,12 @@ def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: 
         mx = (reg == code) & np.isfinite(xe)
         a["xr_abs"] += float(np.abs(xe[mx] - te[mx]).sum())
         a["nx"] += int(mx.sum())
-    # fatal risk (label >= train.fatal_risk) against the truth's at the same threshold, on observed cells
+    # fatal risk (label >= train.fatal_risk) on observed cells against the truth's obstacles: fatal
+    # true risk (rocks, trees, steep slopes) or anything standing taller than the ground clearance
+    # (bushes too, which the truth's risk calls passable) of mapping.clearance_m
     lab = codes.observed(reg) & np.isfinite(rk)
-    p, q = rk[lab] >= cfg.train.fatal_risk, trisk[lab] >= cfg.train.fatal_risk
+    obstacle = (trisk >= cfg.train.fatal_risk) | (truth.standing(T_odom_target, X, Y, t_ns) >= cfg.mapping.clearance_m)
+    p, q = rk[lab] >= cfg.train.fatal_risk, obstacle[lab]
     fatal["tp"] += int((p & q).sum())
     fatal["fp"] += int((p & ~q).sum())
     fatal["fn"] += int((~p & q).sum())

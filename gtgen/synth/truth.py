@@ -61,6 +61,15 @@ class Truth:
         seen = np.where(srf - g > 0.3, srf, g) if self.world.cfg.canopy else g
         return (g - T[2, 3]).astype(np.float32), r, (seen - T[2, 3]).astype(np.float32)
 
+    def standing(self, T_odom_target: NDArray, X: NDArray, Y: NDArray, t_ns: int) -> NDArray[np.float32]:
+        """Return, at target cells (X, Y), the height of what stands on the ground there (tree
+        crowns and trunks, bushes) [m]; rocks are ground."""
+        T = self.T_crs_odom(t_ns) @ T_odom_target
+        E = T[0, 0] * X + T[0, 1] * Y + T[0, 3]
+        N = T[1, 0] * X + T[1, 1] * Y + T[1, 3]
+        g, srf = self.world.terrain.sample(E - self.origin[0], N - self.origin[1], ("ground", "surface"))
+        return (srf - g).astype(np.float32)
+
     def dem_heights(self, E: NDArray, N: NDArray) -> NDArray[np.float64]:
         """Return what the DEM tiles hold at CRS points (E, N), noise aside: the terrain as
         surveyed (before the terrain changes), from elsewhere in the shifted and wrong tile."""
