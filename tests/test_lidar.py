@@ -223,10 +223,9 @@ def _oracle(d, cfg, k):
 
 
 def test_n_scan_input_equals_an_independent_accumulation(scan_dataset, scan_cfg):
+    from gtgen.storage import schema as sc
     from gtgen.storage.dataset import DatasetStore
     from gtgen.storage.drive import DriveStore
-
-    from gtgen.storage import schema as sc
 
     d = DriveStore(scan_dataset / "drive.zarr")
     ds = DatasetStore(scan_dataset / "dataset.zarr")
