@@ -181,7 +181,7 @@ class SynthConfig(_Model):
     dem_wrong_tile: bool = Field(False, description="one DEM tile under the drive holds the terrain of a neighbouring area (1 km north)")
     scan_rate_hz: float = Field(10.0, ge=0, description="raw scans published per lidar (three spinning 32-beam lidars: front, front tilted down, back) [Hz]; 0: none")
     scan_beams: int = Field(32, ge=1, le=32, description="beams cast of the VLP-32C's 32 (evenly thinned, the lowest and highest kept)")
-    scan_azimuth_deg: float = Field(0.4, gt=0, le=10, description="azimuth step of a scan's columns [deg] (a VLP-32C at 10 Hz: 0.2)")
+    scan_azimuth_deg: float = Field(1.0, gt=0, le=10, description="azimuth step of a scan's columns [deg]; a VLP-32C at 10 Hz has 0.2, 5 times the columns, rays and bag bytes")
     scan_range_m: float = Field(100.0, gt=1, description="maximum range of a raw scan [m]")
     scan_noise_m: float = Field(0.03, ge=0, description="range noise std of a raw scan return [m]")
     scan_dropout: float = Field(0.05, ge=0, lt=1, description="share of a raw scan's returns dropped at random")

@@ -8,7 +8,7 @@ OUT=${1:-demo}
 GT="$ROOT/.venv/bin/gtgen"
 rm -rf "$OUT" && mkdir -p "$OUT"
 cd "$OUT"
-"$GT" synth drive --duration 120 --format mcap --seed 7
+"$GT" synth drive --duration 120 --format mcap --seed 7 --scan-rate 2
 "$GT" extract drive/drive.mcap
 "$GT" fuse --window 60
 "$GT" dem-align

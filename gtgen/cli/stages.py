@@ -18,6 +18,8 @@ def synth(
                                              help="drive duration, at most 3600 [default from config: 60]"),
     format: Optional[str] = typer.Option(None, "--format", metavar="mcap|bag|both", callback=setting("synth.formats"),
                                          help="bag flavours to write [default from config: both]"),
+    scan_rate: Optional[float] = typer.Option(None, "--scan-rate", metavar="HZ", callback=setting("synth.scan_rate_hz"),
+                                              help="raw scans per lidar, 0 for none [default from config: 10]"),
     overwrite: bool = typer.Option(False, help="replace a non-empty OUT"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
@@ -28,9 +30,10 @@ def synth(
     ```
     gtgen synth drive                   # 60 s drive, ROS 2 MCAP + ROS 1 bag
     gtgen synth drive --seed 3 --duration 120 --format mcap
+    gtgen synth drive --scan-rate 2     # fewer raw lidar scans: a smaller, faster drive
     ```
     """
-    given = {"seed": seed, "duration_s": duration, "formats": format}
+    given = {"seed": seed, "duration_s": duration, "formats": format, "scan_rate_hz": scan_rate}
     over: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
     cfg = load(config, {"synth": over})
     from gtgen.synth import run_synth
