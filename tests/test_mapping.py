@@ -209,7 +209,7 @@ def test_extract_maps_from_lidar_when_no_stack_publishes_maps(lidar_only_bag, dr
         e, risk, conf = m.layers(len(m) // 2)
         assert np.isfinite(e).mean() > 0.05 and 0 <= np.nanmin(risk) and np.nanmax(risk) <= 1
         assert conf.min() >= 0 and conf.max() <= 1
-    assert (got.voxel_counts() > 0).mean() > 0.9  # a sample before the first sweeps has an empty voxel map
+    assert got.voxel_counts().min() > 0  # no sample before the first scan
 
 
 def test_a_lidar_made_map_needs_a_raw_scan_topic(drive_dir, cfg, tmp_path):

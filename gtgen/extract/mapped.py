@@ -42,9 +42,11 @@ REORDER_NS = 500_000_000  # scans are put in stamp order within this much of rec
 
 def declare(cfg: GtgenConfig, scan: Scan) -> None:
     """Give ``scan`` a usable map of each lidar-made range, and a voxel map, at every usable
-    front camera stamp (the sample candidates' times), in odom."""
+    front camera stamp (the sample candidates' times) from the first raw scan on, in odom."""
     made = cfg.topics.from_lidar()
-    t = [s for s in scan.stamps["camera.front"] if s >= 0]
+    first = min((min((s for s in v if s >= 0), default=np.iinfo(np.int64).max) for r, v in scan.stamps.items() if r.startswith("lidar.")),
+                default=np.iinfo(np.int64).min)
+    t = [s for s in scan.stamps["camera.front"] if s >= first]
     odom = cfg.topics.odom_frame
     for r in RANGES:
         if r in made:
