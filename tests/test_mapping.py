@@ -280,7 +280,18 @@ def test_a_smooth_slope_is_slope_not_step_or_roughness_at_any_cell_size(res):
     g = np.tan(np.radians(20.0)) * x[:, None] + 0.0 * x[None, :]
     geo = geometry(g, res, 3)
     assert np.allclose(geo["slope"][1:-1, 1:-1], 20.0, atol=0.01)
-    assert geo["step"][1:-1, 1:-1].max() < 1e-9 and geo["roughness"][1:-1, 1:-1].max() < 1e-6
+    assert geo["step"][1:-1, 1:-1].max() < 1e-5 and geo["roughness"][1:-1, 1:-1].max() < 1e-5
     g[20, 20] += 0.5  # a 0.5 m block: a step at it and its neighbours, whatever the slope
     geo = geometry(g, res, 3)
-    assert geo["step"][20, 20] > 0.45 and geo["step"][19, 20] > 0.3 and geo["step"][10, 10] < 1e-9
+    assert geo["step"][20, 20] > 0.45 and geo["step"][19, 20] > 0.3 and geo["step"][10, 10] < 1e-5
+
+
+def test_geometry_equals_its_cell_by_cell_oracle():
+    from gtgen.mapping.layers import geometry, geometry_naive
+
+    rng = np.random.default_rng(2)
+    g = rng.normal(0, 0.2, (14, 12)) + 0.3 * np.arange(14)[:, None] * 0.4
+    g[rng.random(g.shape) < 0.2] = np.nan
+    fast, slow = geometry(g, 0.4, 3), geometry_naive(g, 0.4, 3)
+    for name in ("slope", "roughness", "step"):
+        np.testing.assert_allclose(fast[name], slow[name], atol=2e-4, err_msg=name)

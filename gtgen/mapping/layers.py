@@ -42,52 +42,73 @@ def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
     cell, from the plane fitted (least squares) through the k x k neighbourhood's cells that
     have ground: slope is the plane's, roughness the std of the cells about it, and step the
     largest jump from the cell to a neighbour beyond what the plane's slope explains. So a
-    smooth slope is slope, not step or roughness, at any cell size. NaN where no ground."""
+    smooth slope is slope, not step or roughness, at any cell size. NaN where no ground.
+
+    The sums of the fit are separable filters and the 3 x 3 normal equations are solved by
+    Cramer's rule, cell-wise (``geometry_naive`` solves them one by one: the oracle)."""
     valid = np.isfinite(ground)
     ref = float(np.median(ground[valid])) if valid.any() else 0.0
     g = np.where(valid, ground - ref, 0.0)
     v = valid.astype(np.float64)
     c = k // 2
     off = (np.arange(k) - c) * res
-    KX, KY = np.meshgrid(off, off, indexing="ij")  # axis 0 = x
+    one = np.ones(k)
 
-    def corr(a: NDArray, kern: NDArray) -> NDArray:
-        return ndimage.correlate(a, kern, mode="constant", cval=0.0)
+    def corr(a: NDArray, kx: NDArray, ky: NDArray) -> NDArray:  # sum over the neighbourhood of a * kx[dx] * ky[dy]
+        return ndimage.correlate1d(ndimage.correlate1d(a, kx, axis=0, mode="constant"), ky, axis=1, mode="constant")
 
-    one = np.ones((k, k))
-    Sw, Sx, Sy = corr(v, one), corr(v, KX), corr(v, KY)
-    Sxx, Syy, Sxy = corr(v, KX * KX), corr(v, KY * KY), corr(v, KX * KY)
-    Sg, Sxg, Syg, Sgg = corr(g, one), corr(g, KX), corr(g, KY), corr(g * g, one)
-    A = np.stack([np.stack([Sw, Sx, Sy], -1), np.stack([Sx, Sxx, Sxy], -1), np.stack([Sy, Sxy, Syy], -1)], -2)
-    rhs = np.stack([Sg, Sxg, Syg], -1)
-    fit = valid & (Sw >= 4)
-    det = np.zeros_like(Sw)
-    det[fit] = np.linalg.det(A[fit])
-    fit &= np.abs(det) > 1e-9 * res**4 * np.maximum(Sw, 1) ** 3
-    p = np.zeros((*g.shape, 3))
-    p[..., 0] = np.where(Sw > 0, Sg / np.maximum(Sw, 1e-9), 0.0)  # no plane: the mean, level
-    if fit.any():
-        p[fit] = np.linalg.solve(A[fit], rhs[fit][..., None])[..., 0]
-    a0, bx, by = p[..., 0], p[..., 1], p[..., 2]
+    Sw, Sx, Sy = corr(v, one, one), corr(v, off, one), corr(v, one, off)
+    Sxx, Syy, Sxy = corr(v, off * off, one), corr(v, one, off * off), corr(v, off, off)
+    Sg, Sxg, Syg, Sgg = corr(g, one, one), corr(g, off, one), corr(g, one, off), corr(g * g, one, one)
+    # Cramer's rule on [[Sw, Sx, Sy], [Sx, Sxx, Sxy], [Sy, Sxy, Syy]] p = [Sg, Sxg, Syg]
+    c00, c01, c02 = Sxx * Syy - Sxy * Sxy, Sxy * Sy - Sx * Syy, Sx * Sxy - Sxx * Sy
+    det = Sw * c00 + Sx * c01 + Sy * c02
+    fit = valid & (Sw >= 4) & (np.abs(det) > 1e-9 * res**4 * np.maximum(Sw, 1) ** 3)
+    inv = np.where(fit, 1.0 / np.where(fit, det, 1.0), 0.0)
+    a0 = np.where(fit, (Sg * c00 + Sxg * c01 + Syg * c02) * inv, Sg / np.maximum(Sw, 1e-9))  # no plane: the mean, level
+    bx = (Sg * c01 + Sxg * (Sw * Syy - Sy * Sy) + Syg * (Sx * Sy - Sw * Sxy)) * inv
+    by = (Sg * c02 + Sxg * (Sy * Sx - Sw * Sxy) + Syg * (Sw * Sxx - Sx * Sx)) * inv
     var = (Sgg - (a0 * Sg + bx * Sxg + by * Syg)) / np.maximum(Sw, 1e-9)
     rough = np.sqrt(np.maximum(var, 0.0))
     slope = np.degrees(np.arctan(np.hypot(bx, by)))
-    step = np.zeros_like(g)
     H, W = g.shape
-    for i in range(k):  # a loop over the k x k offsets, each a whole-grid operation
-        for j in range(k):
-            di, dj = i - c, j - c
+    gp = np.pad(g.astype(np.float32), c)
+    vp = np.pad(valid, c)
+    g32, bx32, by32 = g.astype(np.float32), (bx * res).astype(np.float32), (by * res).astype(np.float32)
+    step = np.zeros((H, W), np.float32)
+    for di in range(-c, c + 1):  # a loop over the k x k offsets, each a whole-grid operation
+        for dj in range(-c, c + 1):
             if di == 0 and dj == 0:
                 continue
-            gn = np.zeros_like(g)
-            vn = np.zeros_like(valid)
-            src = (slice(max(di, 0), H + min(di, 0)), slice(max(dj, 0), W + min(dj, 0)))
-            dst = (slice(max(-di, 0), H + min(-di, 0)), slice(max(-dj, 0), W + min(-dj, 0)))
-            gn[dst], vn[dst] = g[src], valid[src]
-            jump = np.abs(gn - g - (bx * di * res + by * dj * res))
-            step = np.maximum(step, np.where(vn, jump, 0.0))
+            gn = gp[c + di: c + di + H, c + dj: c + dj + W]
+            vn = vp[c + di: c + di + H, c + dj: c + dj + W]
+            jump = np.abs(gn - g32 - (bx32 * di + by32 * dj))
+            np.maximum(step, np.where(vn, jump, 0.0), out=step)
     nan = ~valid
     return {"step": np.where(nan, np.nan, step), "slope": np.where(nan, np.nan, slope), "roughness": np.where(nan, np.nan, rough)}
+
+
+def geometry_naive(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
+    """``geometry`` cell by cell: the plane fitted with lstsq on each neighbourhood (the test oracle)."""
+    H, W = ground.shape
+    c = k // 2
+    out = {n: np.full((H, W), np.nan) for n in ("step", "slope", "roughness")}
+    for i in range(H):
+        for j in range(W):
+            if not np.isfinite(ground[i, j]):
+                continue
+            pts = [(di * res, dj * res, ground[i + di, j + dj]) for di in range(-c, c + 1) for dj in range(-c, c + 1)
+                   if 0 <= i + di < H and 0 <= j + dj < W and np.isfinite(ground[i + di, j + dj])]
+            P = np.array(pts)
+            A = np.column_stack([np.ones(len(P)), P[:, 0], P[:, 1]])
+            if len(P) >= 4 and np.linalg.matrix_rank(A) == 3:
+                a0, bx, by = np.linalg.lstsq(A, P[:, 2], rcond=None)[0]
+            else:
+                a0, bx, by = P[:, 2].mean(), 0.0, 0.0
+            out["roughness"][i, j] = np.sqrt(max(np.mean((P[:, 2] - (a0 + bx * P[:, 0] + by * P[:, 1])) ** 2), 0.0))
+            out["slope"][i, j] = np.degrees(np.arctan(np.hypot(bx, by)))
+            out["step"][i, j] = max([abs(z - ground[i, j] - (bx * x + by * y)) for x, y, z in P if (x, y) != (0, 0)], default=0.0)
+    return out
 
 
 def layers(cells: dict[str, NDArray], cfg: MappingConfig, res: float, center: NDArray) -> MapLayers:
