@@ -18,6 +18,7 @@ from gtgen.bag.reader import BagSet, hash_bag
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError
 from gtgen.extract import calib
+from gtgen.extract.images import stored_cameras
 from gtgen.extract.roles import resolve_roles
 from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
@@ -73,8 +74,9 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         track, poses, warnings = calib.pose_track(cfg, scan, tf)
         calib.drop_untransformable(cfg, scan, tf)
         plan = _plan(cfg, track, scan)
-        write_small(w, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
-        reread = write_large(w, paths, cfg, roles, scan, tf, plan, parts, pool)
+        cams = stored_cameras(cfg, scan.info)
+        write_small(w, scan, track, plan, cams, *calib.extrinsics(cfg, scan, tf, plan.image_t, cams))
+        reread = write_large(w, paths, cfg, roles, scan, tf, plan, parts, pool, cams)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
         result.poses = poses
         _finish(w, paths, cfg, result)
