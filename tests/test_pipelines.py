@@ -20,7 +20,7 @@ from gtgen.synth import run_synth
 from pipelines.build_dataset import build_dataset
 
 ARRAYS = ("labels/micro/elevation_m", "labels/short/region", "labels/short/risk", "meta/t_ns", "meta/drive",
-          "meta/T_crs_target", "inputs/images", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
+          "meta/T_crs_target", "inputs/jpeg", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
 
 
 @pytest.fixture(scope="module")
