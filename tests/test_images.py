@@ -167,3 +167,25 @@ def test_the_loader_decodes_at_the_model_size_with_matching_intrinsics(dataset):
     assert tuple(item["images"].shape) == (4, 3, 15, 24)
     K = store.inputs("K")[0][0]
     np.testing.assert_allclose(item["K"][0, 0, 0].item(), K[0, 0] * 0.5, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["dataset", "drive"])
+def test_a_store_of_the_previous_version_is_refused_in_one_line_saying_how_to_rebuild(kind, dataset, drive_store, tmp_path):
+    import json
+    import shutil
+
+    from conftest import reseal, run_cli
+
+    src = dataset if kind == "dataset" else drive_store
+    old = tmp_path / f"old_{kind}.zarr"
+    shutil.copytree(src, old)
+    meta = json.loads((old / "zarr.json").read_text())
+    meta["attributes"]["version"] = 4
+    (old / "zarr.json").write_text(json.dumps(meta))
+    reseal(old)
+    args = ("report", old, "-o", tmp_path / "rep") if kind == "dataset" else ("fuse", old, "-o", tmp_path / "f.zarr")
+    p = run_cli(*args, cwd=tmp_path)
+    err = p.stderr.strip()
+    assert p.returncode == 1 and "\n" not in err and "Traceback" not in err, err
+    assert "has version 4; this gtgen reads version 5" in err and "JPEG" in err
+    assert ("gtgen build" in err) if kind == "dataset" else ("gtgen extract" in err)
