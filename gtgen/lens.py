@@ -98,43 +98,22 @@ class Lens:
 
 @dataclass(frozen=True)
 class Remap:
-    """A bilinear resampling of an (h, w) image onto an (H, W) one: for each output pixel
-    its four source pixels (flat indices) and weights; outside the source it is black."""
+    """A resampling of a source image onto an (H, W) one: the source pixel coordinates
+    (u, v) [px] each output pixel takes its value from, bilinearly (``grids.bilinear``,
+    gtgen's one bilinear sampler); black beyond the source's outer pixel centres."""
 
-    index: NDArray[np.int64]  # (4, H * W)
-    weight: NDArray[np.float32]  # (4, H * W), zero outside the source
-    shape: tuple[int, int]  # output (H, W)
+    u: NDArray[np.float64]  # (H, W) source column of each output pixel
+    v: NDArray[np.float64]  # (H, W) source row
     src_shape: tuple[int, int]  # source (h, w)
 
     def __call__(self, img: NDArray[np.uint8]) -> NDArray[np.uint8]:
         """Return ``img`` (h, w, C) resampled onto the output grid (H, W, C)."""
+        from gtgen.grids import bilinear
+
         if img.shape[:2] != self.src_shape:
             raise ValueError(f"remap made for {self.src_shape} images, got {img.shape[:2]}")
-        flat = img.reshape(-1, img.shape[2]).astype(np.float32)
-        out = np.zeros((self.index.shape[1], img.shape[2]), np.float32)
-        for k in range(4):
-            out += flat[self.index[k]] * self.weight[k][:, None]
-        return np.clip(out + 0.5, 0, 255).astype(np.uint8).reshape(*self.shape, img.shape[2])
-
-
-def remap_at(u: NDArray, v: NDArray, src_hw: tuple[int, int]) -> Remap:
-    """Return the bilinear :class:`Remap` sampling source pixel coordinates (u, v) [px]
-    (arrays of the output's shape); samples outside the source are black."""
-    h, w = src_hw
-    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-    fu, fv = (u - u0).ravel(), (v - v0).ravel()
-    idx, wts = [], []
-    for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
-        uu, vv = u0.ravel() + du, v0.ravel() + dv
-        inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-        idx.append(np.where(inside, np.clip(vv, 0, h - 1) * w + np.clip(uu, 0, w - 1), 0))
-        wts.append(np.where(inside, wt, 0.0))
-    # a sample more than half a pixel outside the source is black; nearer, the edge pixels carry it
-    ok = (u.ravel() > -0.5) & (u.ravel() < w - 0.5) & (v.ravel() > -0.5) & (v.ravel() < h - 0.5)
-    W = np.array(wts)
-    tot = W.sum(axis=0)
-    W = np.where(ok & (tot > 0), W / np.where(tot > 0, tot, 1.0), 0.0)
-    return Remap(np.array(idx), W.astype(np.float32), u.shape, (h, w))
+        out = bilinear(np.moveaxis(img, -1, 0).astype(np.float32), self.v, self.u, outside="nan")
+        return np.clip(np.nan_to_num(np.moveaxis(out, 0, -1), nan=0.0) + 0.5, 0, 255).astype(np.uint8)
 
 
 def rectify_remap(lens: Lens, K: NDArray, size: tuple[int, int]) -> Remap:
@@ -146,7 +125,7 @@ def rectify_remap(lens: Lens, K: NDArray, size: tuple[int, int]) -> Remap:
     yn = (py - K[1, 2]) / K[1, 1]
     xn = (px - K[0, 2] - K[0, 1] * yn) / K[0, 0]
     xd, yd = lens.distort(xn, yn)
-    return remap_at(K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2], (H, W))
+    return Remap(K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2], (H, W))
 
 
 def project(K: NDArray, P_cam: NDArray, lens: Lens | None = None) -> NDArray[np.float64]:

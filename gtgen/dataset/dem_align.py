@@ -59,7 +59,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     dem_dir = dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags])
     with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
             align_drive(drive, fused, dem_dir, cfg, cache=out.parent / "dem-index.json") as al:
-        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, drive.shape("samples/jpeg")[2])
+        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, drive.jpeg_capacity)
         kept = _record(al, writer)
         ctx = Context(drive, fused, al.dem, tmp, cfg)
         with Pool(workers) as pool:

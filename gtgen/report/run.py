@@ -103,4 +103,4 @@ def _image_bytes(ds: DatasetStore) -> float:
     """Return the mean bytes of a sample's four stored JPEG files."""
     if not ds.n_samples:
         return 0.0
-    return round(float(ds.read("inputs/jpeg_nbytes").astype(np.int64).sum(axis=1).mean()), 1)
+    return round(float(ds.jpeg_bytes().sum(axis=1).mean()), 1)

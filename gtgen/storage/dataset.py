@@ -78,6 +78,10 @@ class DatasetStore(Store):
         """Bytes of the zero-padded row holding each stored JPEG file (B)."""
         return self.shape("inputs/jpeg")[2]
 
+    def jpeg_bytes(self) -> NDArray[np.int64]:
+        """Return the length of every stored JPEG file (S, 4) [bytes]."""
+        return self.read("inputs/jpeg_nbytes").astype(np.int64) if self.n_samples else np.zeros((0, 4), np.int64)
+
     def jpeg_files(self, k: int) -> list[bytes]:
         """Return sample ``k``'s four JPEG files (front, left, right, back) as stored."""
         return jpeg_files(self.inputs("jpeg")[k], self.inputs("jpeg_nbytes")[k])

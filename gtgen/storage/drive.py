@@ -154,6 +154,11 @@ class DriveStore(Store):
         (len(ks), 4, B) and lengths (len(ks), 4) [bytes]."""
         return self.read("samples/jpeg", ks), self.read("samples/jpeg_nbytes", ks)
 
+    @property
+    def jpeg_capacity(self) -> int:
+        """Bytes of the zero-padded row holding each stored JPEG file (B)."""
+        return self.shape("samples/jpeg")[2]
+
     def K(self) -> NDArray[np.float64]:
         """Return the intrinsics of the four cameras' stored (rectified) images (4, 3, 3) [px]."""
         return self.read("calib/K")
