@@ -112,7 +112,7 @@ class DriveStore(Store):
 
     @property
     def image_size(self) -> tuple[int, int]:
-        """Stored image width, height [px]."""
+        """The box stored images fit in: width, height [px] (``image_sizes`` per camera)."""
         w, h = self.attrs["image_size"]
         return int(w), int(h)
 
