@@ -110,7 +110,7 @@ def eval_cmd(
     ```
     gtgen eval --ckpt runs/latest/ckpt.pt
     gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'   # mean ± spread of seeds
-    gtgen eval build/dataset.zarr --ckpt runs/latest/best.pt --split test   # held-out drives
+    gtgen eval paso/dataset.zarr --ckpt runs/a/best.pt --split test
     gtgen eval data/test.zarr --ckpt runs/paper/best.pt --split all --viz 3
     ```
     """
