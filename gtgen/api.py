@@ -5,6 +5,8 @@ the stages (storage below, the trainer's torch view reached lazily), so no stage
     ds.splits["val"]                       # sample indices of the val split
     ds.schema["labels/micro/elevation_m"]  # dtype, shape, units, frame, fill, meaning
     labels = ds.xarray("labels/micro")     # xarray.Dataset: sample (time) x x_m x y_m
+    front, left, right, back = ds.images(0)  # sample 0's images decoded (H, W, 3) RGB
+    ds.jpeg_files(0)                       # ... or their JPEG files as stored
     torch_ds = ds.torch("train")           # a PyTorch Dataset (gtgen.train.data.ShardDataset)
 """
 
@@ -44,8 +46,18 @@ class Dataset:
 
     @property
     def splits(self) -> dict[str, np.ndarray]:
-        """Sample indices per split name (``train``, ``val``)."""
+        """Sample indices per split name (``train``, ``val``, ``test``)."""
         return self.store.splits
+
+    def images(self, k: int) -> list[np.ndarray]:
+        """Return sample ``k``'s four images (front, left, right, back) decoded, (H, W, 3)
+        RGB uint8 at their stored size: rectified, so ``inputs/K`` of the sample projects
+        into them as a pinhole."""
+        return self.store.images(k)
+
+    def jpeg_files(self, k: int) -> list[bytes]:
+        """Return sample ``k``'s four JPEG files (front, left, right, back) as stored."""
+        return self.store.jpeg_files(k)
 
     def xarray(self, group: str = "labels/micro") -> Any:
         """Return one group (``labels/micro``, ``labels/short``, ``xracer/<range>``,

@@ -73,14 +73,15 @@ def observed(region: NDArray) -> NDArray[np.bool_]:
     return (region == OBS_PC) | (region == OBS_F)
 
 
-# -- dataset splits (uint8), by geography -----------------------------------------------
+# -- dataset splits (uint8): train / val by geography, test by whole drive ---------------
 TRAIN = 0
 VAL = 1
-SPLITS: dict[int, str] = {TRAIN: "train", VAL: "val"}
+TEST = 2  # a drive held out whole (``split: test`` in the build manifest)
+SPLITS: dict[int, str] = {TRAIN: "train", VAL: "val", TEST: "test"}
 
 
 def split_code(name: str) -> int:
-    """Return the code of split ``name`` ('train' or 'val')."""
+    """Return the code of split ``name`` ('train', 'val' or 'test')."""
     for code, n in SPLITS.items():
         if n == name:
             return code

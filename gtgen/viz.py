@@ -42,7 +42,7 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
         cols += ["predicted elevation", "predicted risk"]
     fig = plt.figure(figsize=(3 * len(cols), 10.5))
     gs = fig.add_gridspec(3, len(cols))
-    imgs = ds.inputs("images")[index]
+    imgs = ds.images(index)
     step = max(1, len(cols) // 4)
     for c_i, cam in enumerate(CAMERAS):
         ax = fig.add_subplot(gs[0, c_i * step : (c_i + 1) * step])

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gtgen import __version__
+from gtgen import __version__, codes
 from gtgen.bag.reader import SUFFIXES, hash_bag
 from gtgen.config import GtgenConfig, read_yaml
 from gtgen.dataset.dem_align import run_dem_align
@@ -68,12 +68,16 @@ class BuildResult:
     seconds: float
 
 
-def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
-    """Return {drive name: bag paths} from a manifest YAML, drive folders, or bag files.
+def find_drives(sources: list[Path], splits: dict[str, str] | None = None) -> dict[str, list[Path]]:
+    """Return {drive name: bag paths} from a manifest YAML, drive folders, or bag files;
+    ``splits``, if given, receives {drive name: split} of the manifest's drives that name one.
 
-    A manifest maps names to bag lists (``drives: {name: [bag, ...]}``). A folder that
-    holds bags (or is a rosbag2 recording) is one drive; a folder of such folders is
-    one drive per subfolder; a bag file alone is a drive named after it.
+    A manifest maps names to bag lists (``drives: {name: [bag, ...]}``) or to entries
+    ``{bags: [bag, ...], split: test}`` (a drive held out whole; ``split`` may be
+    ``train``, ``val`` or ``test``; without one, a drive's samples are split by
+    geography). A folder that holds bags (or is a rosbag2 recording) is one drive; a
+    folder of such folders is one drive per subfolder; a bag file alone is a drive named
+    after it.
     """
     drives: dict[str, list[Path]] = {}
 
@@ -86,8 +90,10 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
         if not src.exists():
             raise InputNotFoundError(f"source '{src}' does not exist")
         if src.is_file() and src.suffix in (".yaml", ".yml"):
-            for name, bags in _manifest(src).items():
+            for name, (bags, split) in _manifest(src).items():
                 add(name, bags)
+                if split is not None and splits is not None:
+                    splits[name] = split
         elif src.is_file():
             add(src.stem, [src.resolve()])
         elif (src / "metadata.yaml").is_file():
@@ -106,18 +112,32 @@ def find_drives(sources: list[Path]) -> dict[str, list[Path]]:
     return drives
 
 
-def _manifest(src: Path) -> dict[str, list[Path]]:
-    """Return {drive name: bags} of a manifest file, or raise ConfigError saying what is wrong."""
+def _manifest(src: Path) -> dict[str, tuple[list[Path], str | None]]:
+    """Return {drive name: (bags, split or None)} of a manifest file, or raise ConfigError
+    saying what is wrong."""
     entries = read_yaml(src, "manifest").get("drives")
-    if not isinstance(entries, dict) or not all(isinstance(b, list) and b for b in entries.values()):
-        raise ConfigError(f"manifest '{src}' must hold 'drives: {{name: [bag, ...]}}' (a mapping of drive names to lists of bags)")
+    shape = ("'drives: {name: [bag, ...]}' or 'drives: {name: {bags: [bag, ...], split: test}}' "
+             "(a mapping of drive names to lists of bags)")
+    if not isinstance(entries, dict) or not entries:
+        raise ConfigError(f"manifest '{src}' must hold {shape}")
     out = {}
-    for name, bags in entries.items():
+    for name, entry in entries.items():
+        split = None
+        if isinstance(entry, dict):
+            extra = sorted(set(entry) - {"bags", "split"})
+            if extra:
+                raise ConfigError(f"manifest '{src}': drive {name!r} has keys {extra}; expected 'bags' and optionally 'split'")
+            split, entry = entry.get("split"), entry.get("bags")
+            if split is not None and split not in codes.SPLITS.values():
+                raise ConfigError(f"manifest '{src}': drive {name!r} has split {split!r}; expected one of {list(codes.SPLITS.values())}")
+        if not isinstance(entry, list) or not entry:
+            raise ConfigError(f"manifest '{src}': drive {name!r} must list its bags; the manifest must hold {shape}")
+        bags = entry
         paths = [(src.parent / str(b)).resolve() for b in bags]
         missing = [str(p) for p in paths if not p.exists()]
         if missing:
             raise InputNotFoundError(f"manifest '{src}': drive {name!r} names bags that do not exist: {missing}")
-        out[str(name)] = paths
+        out[str(name)] = (paths, split)
     return out
 
 
@@ -185,7 +205,8 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
                   workers: int = 2, scheduler: str | None = None, overwrite: bool = False) -> BuildResult:
     """Build ``out/dataset.zarr`` from every drive in ``sources``; see the module docstring."""
     t0 = time.perf_counter()
-    drives = find_drives(sources)
+    splits: dict[str, str] = {}
+    drives = find_drives(sources, splits)
     if out.exists() and not out.is_dir():
         raise GtgenError(f"output '{out}' is a file; gtgen build writes dataset.zarr and drives/ into a folder")
     work = out / "drives"
@@ -210,7 +231,7 @@ def build_dataset(sources: list[Path], dem_dir: Path | None, out: Path, cfg: Gtg
                 while merged < len(order) and order[merged] in results:
                     res = results[order[merged]]
                     if res.ok:
-                        merger.add(res.name, work / res.name / "dataset.zarr")
+                        merger.add(res.name, work / res.name / "dataset.zarr", splits.get(res.name))
                     merged += 1
 
             merge_ready()

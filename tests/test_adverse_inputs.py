@@ -201,7 +201,7 @@ def test_an_undecodable_message_a_sample_needs_rejects_that_sample(drive_dir, dr
     assert (col(g)[again] != victim).all() and (np.abs(col(g)[again] - t_new[again]) <= getattr(cfg.extract, skew) * 1e9).all()
     for j, k in zip(np.nonzero(~again)[0], np.nonzero(~lost)[0]):
         assert t_new[j] == t_clean[k]
-        np.testing.assert_array_equal(g["samples/images"][j], clean["samples/images"][k])
+        np.testing.assert_array_equal(g["samples/jpeg"][j], clean["samples/jpeg"][k])
         np.testing.assert_array_equal(g["voxel_maps/points_odom_m"][int(g["samples/voxel_index"][j])],
                                       clean["voxel_maps/points_odom_m"][int(clean["samples/voxel_index"][k])])
         for r in ("micro", "short"):

@@ -81,7 +81,7 @@ def test_extract_store_contents(drive_store, cfg):
     g = DriveStore(drive_store).group
     S = g["samples/t_ns"].shape[0]
     assert S > 10
-    assert g["samples/images"].shape == (S, 4, 30, 48, 3)
+    assert g["samples/jpeg"].shape == (S, 4, 3 * 48 * 30)
     vi, n = g["samples/voxel_index"][:], g["voxel_maps/n_points"][:]
     V, P = g["voxel_maps/points_odom_m"].shape[:2]
     assert np.all(np.diff(vi) >= 0) and set(vi.tolist()) == set(range(V)) and np.all((n > 0) & (n <= P))
@@ -110,7 +110,7 @@ def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp
     for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "samples/T_base_cam"):
         np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
     np.testing.assert_array_equal(a["maps/micro/elevation_m"][3], b["maps/micro/elevation_m"][3])
-    np.testing.assert_array_equal(a["samples/images"][2], b["samples/images"][2])
+    np.testing.assert_array_equal(a["samples/jpeg"][2], b["samples/jpeg"][2])
 
 
 def test_circular_buffer_maps_decode_to_the_same_grid(drive_dir):
@@ -402,7 +402,7 @@ def test_a_bag_cut_short_gives_the_first_samples_of_the_whole_drive(drive_dir, d
         assert (gt[~np.isin(gt, ft)] > t_last - 1_000_000_000).all()  # a sample the whole drive lacks: only at the cut
         for k in safe:
             j = int(np.nonzero(gt == ft[k])[0][0])
-            np.testing.assert_array_equal(g["samples/images"][j], full["samples/images"][k])
+            np.testing.assert_array_equal(g["samples/jpeg"][j], full["samples/jpeg"][k])
             np.testing.assert_array_equal(g["samples/pos_odom_m"][j], full["samples/pos_odom_m"][k])
             for r in ("micro", "short"):
                 np.testing.assert_array_equal(g[f"maps/{r}/elevation_m"][int(g[f"samples/map_index_{r}"][j])],

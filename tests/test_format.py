@@ -94,13 +94,13 @@ class _Flat(dict):
         return self
 
 
-def _block(rng, S, micro, short, hw, src):
+def _block(rng, S, micro, short, nb, src):
     """Samples of random values; the fused-like arrays as Encoded chunks of ``src``."""
     out = []
     for k in range(S):
         s = _Flat()
         for spec in sc.SAMPLE_ARRAYS:
-            shape = row_shape(spec, {"n_m": micro, "n_s": short, "H": hw[0], "W": hw[1]})
+            shape = row_shape(spec, {"n_m": micro, "n_s": short, "B": nb})
             dt = np.dtype(spec.dtype)
             v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
             if spec.path == "labels/micro/risk" and k == 2:
@@ -117,14 +117,14 @@ def _block(rng, S, micro, short, hw, src):
 
 def test_write_block_equals_zarr_writes(tmp_path):
     """Shards assembled from values and encoded chunks hold what zarr writes, byte for byte."""
-    micro, short, hw, S = 12, 8, (4, 6), 5  # a partial shard
+    micro, short, nb, S = 12, 8, 72, 5  # a partial shard; nb: bytes of a JPEG row
     rng = np.random.default_rng(2)
     src = zarr.open_group(str(tmp_path / "src.zarr"), mode="w")
     for path, n in (("labels/micro/risk", micro), ("xracer/short/confidence", short)):
         src.create_array(path, shape=(S, n, n), dtype="float32", chunks=(1, n, n), fill_value=np.nan, compressors=compressors())
-    samples = _block(rng, S, micro, short, hw, src)
+    samples = _block(rng, S, micro, short, nb, src)
     for name, direct in (("ours", True), ("zarr", False)):
-        ShardWriter(tmp_path / f"{name}.zarr", 2 * sc.SAMPLES_PER_SHARD, micro, short, hw)
+        ShardWriter(tmp_path / f"{name}.zarr", 2 * sc.SAMPLES_PER_SHARD, micro, short, nb)
         write_block(tmp_path / f"{name}.zarr", sc.SAMPLES_PER_SHARD, samples, direct=direct)
     a, b = (zarr.open_group(str(tmp_path / f"{n}.zarr"), mode="r") for n in ("ours", "zarr"))
     for path in samples[0]:

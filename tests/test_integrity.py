@@ -55,7 +55,7 @@ DAMAGES = {
     "bytes overwritten inside a shard": lambda ds: _overwrite(_shard(ds, "labels/short/elevation_m"), 40),
     "shard truncated": lambda ds: _truncate(_shard(ds, "labels/micro/region")),
     "meta/t_ns shard deleted": lambda ds: _shard(ds, "meta/t_ns").unlink(),
-    "image shards deleted": lambda ds: _all_shards(ds, "inputs/images"),
+    "image shards deleted": lambda ds: _all_shards(ds, "inputs/jpeg"),
     "array metadata corrupt": lambda ds: (ds / "labels" / "micro" / "risk" / "zarr.json").write_text("{not json"),
     "root metadata deleted": lambda ds: (ds / "zarr.json").unlink(),
 }
@@ -95,7 +95,7 @@ def test_a_damaged_dataset_is_an_error_for_every_reader(damaged, name, cfg, tmp_
                 ds.grid(kind, rng, layer)[k]
         ds.meta("t_ns")
         for k in range(ds.n_samples):
-            ds.inputs("images")[k]
+            ds.inputs("jpeg")[k]
     assert "\n" not in str(err.value)
     _, _, problems = verify_store(ds_path)
     assert problems, name
@@ -339,11 +339,11 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(dataset, tmp_path):
 
 def test_drive_store_reads_are_checked_too(drive_store, tmp_path):
     drive = _copy(drive_store, tmp_path / "d.zarr")
-    victim = next(p for p in (drive / "samples" / "images").iterdir() if p.name.startswith("c."))
+    victim = next(p for p in (drive / "samples" / "jpeg").iterdir() if p.name.startswith("c."))
     victim.unlink()
     d = DriveStore(drive)
-    with pytest.raises(StoreError, match="samples/images.*gtgen extract"):
-        d.images(np.arange(d.n_samples))
+    with pytest.raises(StoreError, match="samples/jpeg.*gtgen extract"):
+        d.jpeg(np.arange(d.n_samples))
 
 
 # -- a kill -9 inside each stage, then the same command again --------------------------------
@@ -384,6 +384,6 @@ def test_a_stage_killed_then_run_again_gives_the_same_output(stage, drive_dir, d
     assert not list(ws.glob("*.partial"))  # nothing left of the killed run
     if ref is not None:
         a, b = (DatasetStore(x) if stage == "dem-align" else DriveStore(x) for x in (ref, out))
-        for path in (("labels/micro/elevation_m", "meta/T_crs_target") if stage == "dem-align" else ("samples/t_ns", "samples/images")):
+        for path in (("labels/micro/elevation_m", "meta/T_crs_target") if stage == "dem-align" else ("samples/t_ns", "samples/jpeg")):
             np.testing.assert_array_equal(a.read(path), b.read(path), err_msg=path)
         assert verify_store(out)[2] == []

@@ -20,7 +20,7 @@ from gtgen.synth import run_synth
 from pipelines.build_dataset import build_dataset
 
 ARRAYS = ("labels/micro/elevation_m", "labels/short/region", "labels/short/risk", "meta/t_ns", "meta/drive",
-          "meta/T_crs_target", "inputs/images", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
+          "meta/T_crs_target", "inputs/jpeg", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
 
 
 @pytest.fixture(scope="module")
@@ -292,3 +292,46 @@ def test_build_replaces_only_what_gtgen_wrote_and_a_failed_build_leaves_nothing(
     p = build(bad.parent, tmp_path / "o2")
     assert p.returncode == 1 and "every drive failed" in one_line(p)
     assert not (tmp_path / "o2").exists()
+
+
+def test_a_drive_held_out_as_test_is_in_no_other_split_and_eval_reports_on_it(drives, pool_build, tmp_path):
+    """``split: test`` in the manifest holds a whole drive out: none of its samples is in
+    train or val, the others keep their geography split, the card counts samples per split
+    and drive, training never sees it and ``gtgen eval --split test`` prints its tables."""
+    import json
+
+    import yaml
+
+    from conftest import run_cli
+    from gtgen import codes
+    from gtgen.report import build_report
+    from test_train import SMALL_TRAIN
+
+    out = tmp_path / "out"
+    shutil.copytree(pool_build / "drives", out / "drives")  # the drives are done: only the merge runs
+    manifest = drives / "manifest.yaml"
+    manifest.write_text(yaml.safe_dump({"drives": {"a": ["a/drive.mcap"], "b": {"bags": ["b/drive.mcap"], "split": "test"},
+                                                   "c": ["c/part_0.mcap", "c/part_1.mcap"]}}))
+    res = build_dataset([manifest], None, out, small_config(), workers=1)
+    assert res.split.get("test", 0) > 0
+    g = zarr.open_group(str(out / "dataset.zarr"), mode="r")
+    names = [d["name"] for d in g.attrs["drives"]]
+    drive, split = g["meta/drive"][:], g["meta/split"][:]
+    b = drive == names.index("b")
+    assert b.any() and np.all(split[b] == codes.TEST) and not np.any(split[~b] == codes.TEST)
+    np.testing.assert_array_equal(split[~b], zarr.open_group(str(pool_build / "dataset.zarr"), mode="r")["meta/split"][:][~b])
+    card = build_report(out / "dataset.zarr", tmp_path / "rep").card
+    assert card["split_by_drive"]["b"]["test"] == int(b.sum()) and card["split_by_drive"]["b"]["train"] == 0
+    assert sum(card["split_by_drive"]["a"].values()) == int((drive == names.index("a")).sum())
+    bad = drives / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"drives": {"a": {"bags": ["a/drive.mcap"], "split": "holdout"}}}))
+    with pytest.raises(Exception, match=r"split 'holdout'.*expected one of \['train', 'val', 'test'\]"):
+        build_dataset([bad], None, tmp_path / "bad", small_config(), workers=1)
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    p = run_cli("train", out / "dataset.zarr", "--preset", "tiny", "--steps", "1", "--run", tmp_path / "run", "--config", c, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    p = run_cli("eval", out / "dataset.zarr", "--ckpt", tmp_path / "run" / "ckpt.pt", "--split", "test", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert f"on test ({int(b.sum())} samples" in p.stdout and "obs PC" in p.stdout and "X-Racer" in p.stdout
+    assert json.loads((tmp_path / "run" / "eval.json").read_text())["samples"] == int(b.sum())

@@ -126,7 +126,7 @@ def test_bad_datasets(dataset, tmp_path):
     reseal(other)
     with pytest.raises(StoreError, match="version 99"):
         ShardDataset(other, cfg.train)
-    w = ShardWriter(tmp_path / "empty.zarr", 0, 8, 8, (4, 4))
+    w = ShardWriter(tmp_path / "empty.zarr", 0, 8, 8, 48)
     w.close(DatasetAttrs(gtgen_version="0", config=cfg.model_dump(mode="json"), drives=[], image_size=(4, 4), cameras=[]))
     with pytest.raises(TrainError, match="no samples"):
         ShardDataset(tmp_path / "empty.zarr", cfg.train)

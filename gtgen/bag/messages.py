@@ -77,12 +77,12 @@ class MessageFactory:
             header=self.header(t_ns, frame, seq), format="jpeg", data=np.frombuffer(jpeg, np.uint8)
         )
 
-    def camera_info(self, t_ns: int, frame: str, width: int, height: int, K: NDArray, seq: int) -> object:
+    def camera_info(self, t_ns: int, frame: str, width: int, height: int, K: NDArray, seq: int, D: NDArray | None = None) -> object:
         P = np.zeros((3, 4))
         P[:, :3] = K
         roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         names = ("D", "K", "R", "P") if self.ros1 else ("d", "k", "r", "p")
-        vals = (np.zeros(5), K.ravel().astype(np.float64), np.eye(3).ravel(), P.ravel())
+        vals = (np.zeros(5) if D is None else np.asarray(D, np.float64).ravel(), K.ravel().astype(np.float64), np.eye(3).ravel(), P.ravel())
         return self.T["sensor_msgs/msg/CameraInfo"](
             header=self.header(t_ns, frame, seq),
             height=height,

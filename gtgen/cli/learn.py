@@ -95,7 +95,7 @@ def eval_cmd(
     dataset: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="DATASET", help="dataset to evaluate on"),
     ckpt: list[Path] = typer.Option([Path("runs/latest/ckpt.pt")], "--ckpt", help="checkpoint from 'gtgen train'; repeat it, or quote a glob, for several seeds (mean ± spread)"),
     preset: Optional[str] = typer.Option(None, metavar="tiny|paper", help="refuse a checkpoint of another preset"),
-    split: str = typer.Option("val", metavar="val|train|all", help="the split to evaluate"),
+    split: str = typer.Option("val", metavar="val|test|train|all", help="the split to evaluate (test: the drives held out whole with 'split: test' in the build manifest)"),
     viz: Optional[int] = typer.Option(None, "--viz", metavar="SAMPLE", help="also draw this sample with the predictions (of the first checkpoint)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="metrics JSON [default: eval.json beside the (first) checkpoint]"),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda | cuda:N [default: auto, CUDA when present]"),
@@ -110,6 +110,7 @@ def eval_cmd(
     ```
     gtgen eval --ckpt runs/latest/ckpt.pt
     gtgen eval --ckpt 'runs/tiny-seed*/ckpt.pt'   # mean ± spread of seeds
+    gtgen eval paso/dataset.zarr --ckpt runs/a/best.pt --split test
     gtgen eval data/test.zarr --ckpt runs/paper/best.pt --split all --viz 3
     ```
     """
@@ -117,10 +118,12 @@ def eval_cmd(
     from rich.markup import escape
     from rich.table import Table
 
+    from gtgen import codes
     from gtgen.train.trainer import EVAL_ROWS, evaluate, evaluate_seeds
 
-    if split not in ("val", "train", "all"):
-        raise GtgenError(f"--split {split!r} unknown; expected one of ['val', 'train', 'all']")
+    names = [*codes.SPLITS.values(), "all"]
+    if split not in names:
+        raise GtgenError(f"--split {split!r} unknown; expected one of {names}")
     ckpts = _checkpoints(ckpt)
     out = out or ckpts[0].parent / "eval.json"
     png = ckpts[0].parent / f"pred_{viz}.png"

@@ -39,6 +39,10 @@ def report(
         rows.append(("  of them by odometry over set-aside tiles", c["samples_kept_by_odometry"]))
     rows += [(f"  rejected: {k}", v) for k, v in c["samples_rejected"].items()]
     rows += [(f"  split {k}", v) for k, v in c["split"].items()]
+    if len(c.get("split_by_drive", {})) > 1:
+        rows += [(f"  drive {d}", ", ".join(f"{k} {v}" for k, v in n.items() if v)) for d, n in c["split_by_drive"].items()]
+    if c.get("image_bytes_per_sample"):
+        rows.append(("images per sample (4 JPEG)", f"{c['image_bytes_per_sample'] / 1e3:.1f} kB"))
     for r, cov in c.get("coverage", {}).items():
         rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
     if c.get("icp_fitness"):

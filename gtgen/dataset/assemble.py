@@ -81,10 +81,10 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     drive, fused, dem, cfg = ctx.drive, ctx.fused, _dem(ctx), ctx.cfg
     grids = {r: grid_xy(cfg.grids.get(r).size, cfg.grids.get(r).resolution_m) for r in RANGES}
     s = drive.samples
-    # the block's images and voxel maps in one read each (only theirs: rejected samples
+    # the block's JPEG files and voxel maps in one read each (only theirs: rejected samples
     # between them are skipped), as zarr's cost per call dominates
     ks = np.array([it.k for it in items])
-    images = drive.images(ks)
+    jpeg, jpeg_n = drive.jpeg(ks)
     vs = np.unique(s.voxel_index[ks])
     vox, vox_n = drive.voxel_points(vs), drive.voxel_counts()
     K = drive.K()
@@ -98,7 +98,8 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
         sample.inputs.update({"K": K, "T_base_cam": s.T_base_cam[it.k]})
-        _inputs_and_meta(sample, cfg, it, images[j], int(s.t_ns[it.k]), pos, quat, yaw, pts_t)
+        sample.inputs.update({"jpeg": jpeg[j], "jpeg_nbytes": jpeg_n[j].astype(np.int32)})
+        _inputs_and_meta(sample, cfg, it, int(s.t_ns[it.k]), pos, quat, yaw, pts_t)
         if scans is not None:
             sample.inputs["scan_points_m"], sample.inputs["scan_counts"] = scans.sample(j, pos, yaw)
         samples.append(sample)
@@ -107,12 +108,11 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     return points
 
 
-def _inputs_and_meta(sample: DatasetSample, cfg: GtgenConfig, it: Kept, images: NDArray, t_ns: int, pos: NDArray, quat: NDArray,
+def _inputs_and_meta(sample: DatasetSample, cfg: GtgenConfig, it: Kept, t_ns: int, pos: NDArray, quat: NDArray,
                      yaw: float, pts_t: NDArray) -> None:
     gs = cfg.grids.short
     T, C = it.T_crs_target, it.T_correction
     sample.inputs.update({
-        "images": images,
         "T_target_base": make_transform(yaw_transform(0, 0, 0, -yaw)[:3, :3] @ quat_to_matrix(quat), np.zeros(3)),
         "raw_elevation_m": raw_min_z(pts_t, gs.size, gs.resolution_m),
     })

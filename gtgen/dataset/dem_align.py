@@ -59,8 +59,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     dem_dir = dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags])
     with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
             align_drive(drive, fused, dem_dir, cfg, cache=out.parent / "dem-index.json") as al:
-        W, H = drive.image_size
-        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, (H, W),
+        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, drive.jpeg_capacity,
                              scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None)
         kept = _record(al, writer)
         ctx = Context(drive, fused, al.dem, tmp, cfg)

@@ -6,6 +6,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
+from gtgen import codes
 from gtgen.config import GtgenConfig
 from gtgen.dataset.dem_align import dataset_attrs
 from gtgen.errors import GtgenError
@@ -26,15 +27,20 @@ class DatasetMerger:
         self.drives: list[DriveEntry] = []
         self._first: DatasetAttrs | None = None
 
-    def add(self, name: str, dataset: Path) -> int:
-        """Append the samples of the dataset at ``dataset`` as drive ``name``; return how many."""
+    def add(self, name: str, dataset: Path, split: str | None = None) -> int:
+        """Append the samples of the dataset at ``dataset`` as drive ``name``, all of them
+        in ``split`` if given (``test``: the drive held out whole), else in the geography
+        split they have; return how many."""
         src = DatasetStore(dataset)
         if self.writer is None:
-            W, H = src.info.image_size
-            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, (H, W),
+            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, src.jpeg_capacity,
                                       scans=src.scan_dims)
             self._first = src.info
-        n = self.writer.append_dataset(src, len(self.drives), f"build: merging {name}")
+        elif src.jpeg_capacity != self.writer.jpeg_capacity:
+            raise GtgenError(f"drive {name!r} stores images of up to {src.jpeg_capacity} bytes, the drives before it "
+                             f"{self.writer.jpeg_capacity}: build every drive with the same extract.image_width and image_height")
+        code = None if split is None else codes.split_code(split)
+        n = self.writer.append_dataset(src, len(self.drives), f"build: merging {name}", split=code)
         self.drives += [d.model_copy(update={"name": name}) for d in src.info.drives]
         return n
 

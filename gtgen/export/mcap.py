@@ -14,7 +14,8 @@ Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
   ``confidence``), same frame;
 - ``/gtgen/labels/<range>/grid``: the labels as ``foxglove_msgs/Grid`` (``elevation``,
   ``risk``, ``region``), which Foxglove's 3D panel colours without a plugin;
-- ``/gtgen/camera_<name>/image/compressed`` (JPEG) and ``.../camera_info``;
+- ``/gtgen/camera_<name>/image/compressed``: the stored JPEG file as it is (rectified),
+  and ``.../camera_info`` with the stored intrinsics and no distortion;
 - ``/gtgen/voxel_points``: the sample's voxel-map points as ``sensor_msgs/PointCloud2``
   in ``target``.
 
@@ -26,7 +27,6 @@ signature (``custom_data.written_by``), so a later export may replace it.
 from __future__ import annotations
 
 import contextlib
-import io
 import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -35,12 +35,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.bag.decode.image import file_size
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat
 from gtgen.runtime.output import PARTIAL, remove, signature, stage_output
 from gtgen.runtime.progress import track
-from gtgen.storage.dataset import DatasetStore
+from gtgen.storage.dataset import DatasetStore, jpeg_files
 
 LABEL_LAYERS = {"elevation": "elevation_m", "risk": "risk", "confidence": "confidence", "region": "region",
                 "count": "count", "last_dt_s": "last_dt_s"}
@@ -56,14 +57,6 @@ class McapExport:
     out: Path
     samples: int = 0
     counts: dict[str, int] = field(default_factory=dict)
-
-
-def _jpeg(img: NDArray, quality: int = 90) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="JPEG", quality=quality)
-    return buf.getvalue()
 
 
 class _Topics:
@@ -139,7 +132,7 @@ def _read_block(ds: DatasetStore, ks: NDArray) -> dict:
     want = [("labels", r, v) for r in RANGES for v in LABEL_LAYERS.values()]
     want += [("xracer", r, v) for r in RANGES for v in XRACER_LAYERS.values()] + [("dem", r, "elevation_m") for r in RANGES]
     out: dict = {(kind, r, v): ds.grids(kind, r, v, ks) for kind, r, v in want}
-    out.update({n: ds.input_rows(n, ks) for n in ("images", "K", "T_base_cam", "T_target_base")})
+    out.update({n: ds.input_rows(n, ks) for n in ("jpeg", "jpeg_nbytes", "K", "T_base_cam", "T_target_base")})
     return out
 
 
@@ -164,13 +157,11 @@ def _write_sample(fac, topics: _Topics, block: dict, i: int, k: int, t: int, T_m
         topics.write(f"/gtgen/xracer/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
         grid = fac.foxglove_grid(t, "target", gr.resolution_m, {n: layers[n] for n in GRID_LAYERS})
         topics.write(f"/gtgen/labels/{r}/grid", "foxglove_msgs/msg/Grid", t, fac.serialize(grid, "foxglove_msgs/msg/Grid"))
-    images = block["images"][i]
-    for ci, c in enumerate(cams):
-        img = images[ci]
-        msg = fac.compressed_image(t, f"camera_{c}", _jpeg(img), k)
+    for ci, (c, jpeg) in enumerate(zip(cams, jpeg_files(block["jpeg"][i], block["jpeg_nbytes"][i]))):
+        msg = fac.compressed_image(t, f"camera_{c}", jpeg, k)  # the stored JPEG as it is
         topics.write(f"/gtgen/camera_{c}/image/compressed", "sensor_msgs/msg/CompressedImage", t,
                      fac.serialize(msg, "sensor_msgs/msg/CompressedImage"))
-        msg = fac.camera_info(t, f"camera_{c}", img.shape[1], img.shape[0], block["K"][i, ci], k)
+        msg = fac.camera_info(t, f"camera_{c}", *file_size(jpeg), block["K"][i, ci], k)
         topics.write(f"/gtgen/camera_{c}/camera_info", "sensor_msgs/msg/CameraInfo", t, fac.serialize(msg, "sensor_msgs/msg/CameraInfo"))
     pts = points(int(offsets[k]), int(offsets[k + 1]))
     msg = fac.pointcloud_xyz(t, "target", pts, k)

@@ -12,14 +12,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from gtgen.bag.decode.image import intrinsics
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import CAMERAS, GtgenConfig
 from gtgen.errors import PoseError, TopicError
+from gtgen.extract.images import StoredCamera
 from gtgen.extract.scan import DUPLICATE, Scan
-from gtgen.geometry import matrix_to_quat, rescale_K
+from gtgen.geometry import matrix_to_quat
 
 NO_TRANSFORM = "no_transform"
 
@@ -139,19 +139,14 @@ def map_to_odom(cfg: GtgenConfig, tf: TfBuffer, center: NDArray, yaw: float, fra
     return Tc[:3, 3], float(np.arctan2(Tc[1, 0], Tc[0, 0])), z0
 
 
-def extrinsics(cfg: GtgenConfig, scan: Scan, tf: TfBuffer, image_t: NDArray) -> tuple[NDArray, NDArray]:
-    """Return the intrinsics K (4, 3, 3) rescaled to the stored image size, and per sample
-    T_base_cam (S, 4, 4, 4) at each image's stamp ``image_t`` (S, 4)."""
-    W, H = cfg.extract.image_width, cfg.extract.image_height
-    Ks, Ts = [], []
+def extrinsics(cfg: GtgenConfig, scan: Scan, tf: TfBuffer, image_t: NDArray, cams: list[StoredCamera]) -> tuple[NDArray, NDArray]:
+    """Return the intrinsics K (4, 3, 3) of the stored (rectified) images ``cams``, and
+    per sample T_base_cam (S, 4, 4, 4) at each image's stamp ``image_t`` (S, 4)."""
+    Ts = []
     for c_i, c in enumerate(CAMERAS):
-        info = scan.info.get(c)
-        if info is None:
-            raise TopicError(f"role 'camera_info.{c}': no CameraInfo on '{cfg.topics.cameras[c].info}'")
-        Ks.append(rescale_K(*intrinsics(info), (W, H)))
-        frame = scan.frames.get(f"camera.{c}") or frame_id(info.header.frame_id)
+        frame = scan.frames.get(f"camera.{c}") or frame_id(scan.info[c].header.frame_id)  # type: ignore[attr-defined]
         T, ok = tf.lookup(cfg.topics.base_frame, frame, image_t[:, c_i])
         if not ok.all():
             raise TopicError(f"camera '{c}': no transform from '{cfg.topics.base_frame}' to '{frame}': {tf.why_not(cfg.topics.base_frame, frame)}")
         Ts.append(T)
-    return np.stack(Ks), np.stack(Ts, axis=1)
+    return np.stack([cam.K for cam in cams]), np.stack(Ts, axis=1)

@@ -18,6 +18,7 @@ from gtgen.bag.reader import BagSet, hash_bag
 from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError
 from gtgen.extract import calib, mapped
+from gtgen.extract.images import stored_cameras
 from gtgen.extract.roles import mapping_topics, resolve_roles
 from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
@@ -74,8 +75,9 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         calib.drop_untransformable(cfg, scan, tf)
         mapped.declare(cfg, scan)
         plan = _plan(cfg, track, scan)
-        write_small(w, scan, track, plan, *calib.extrinsics(cfg, scan, tf, plan.image_t))
-        reread = write_large(w, paths, cfg, roles, scan, tf, track, plan, parts, pool, lidar)
+        cams = stored_cameras(cfg, scan.info)
+        write_small(w, scan, track, plan, cams, *calib.extrinsics(cfg, scan, tf, plan.image_t, cams))
+        reread = write_large(w, paths, cfg, roles, scan, tf, track, plan, parts, pool, lidar, cams)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
         result.poses = poses
         _finish(w, paths, cfg, result)

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import check_gridmap
-from gtgen.bag.decode.image import decode_image, intrinsics
+from gtgen.bag.decode.image import decode_image, image_source, intrinsics
 from gtgen.bag.decode.pointcloud import decode_pointcloud, decode_scan
 from gtgen.bag.decode.tf import frame_id, odometry_pose, quat_xyzw, transform_matrix
 from gtgen.bag.reader import BagSet, Record, stamp_ns
@@ -414,7 +414,7 @@ class _Scanner:
             self.scan.stamps[role].append(t)
             self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
             if self.stager is not None:
-                self.stager.add_image(role, i, t, data)
+                self.stager.add_image(role, i, t, image_source(msg, msgtype, data))  # type: ignore[arg-type]
         elif role == "voxel_map":
             frame = frame_id(hdr.frame_id)
             self.scan.stamps[role].append(t)

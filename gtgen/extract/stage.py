@@ -4,9 +4,12 @@ The plan (sample times, kept maps) needs every stamp of the drive, so it exists 
 once all slices are read. Rather than read the bags a second time, each slice stages
 what the plan will likely keep while it reads: every image, every voxel cloud and raw scan, the
 earliest map of each thinning period and, for each front-camera frame (a sample time
-is always one), the latest map stamped at or before it. Each is written as the encoded
-chunk file it will be in the store (``storage.chunks.encode_chunk``), and once the plan
-exists the kept ones are moved into place by rename; anything the plan wants but no
+is always one), the latest map stamped at or before it. Maps and voxel clouds are
+written as the encoded chunk files they will be in the store
+(``storage.chunks.encode_chunk``), and once the plan exists the kept ones are moved into
+place by rename; images are kept as the camera sent them (``extract.images``: their
+stored form needs the CameraInfo, which may come later) and converted on the pool once
+the plan exists; anything the plan wants but no
 slice staged (stamps far out of record order) is read in a second, targeted pass. The
 store does not depend on what was staged.
 """
@@ -21,8 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import decode_gridmap
-from gtgen.bag.decode.image import resize_image
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.extract.images import Source, write_source
 from gtgen.extract.lidar import compact
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
@@ -53,6 +56,11 @@ class Staged:
     def chunk(self, role: str, i: int, layer: str = "") -> Path:
         """Return the staged chunk file of message ``i`` of ``role`` (map layer ``layer``)."""
         return Path(self.dir) / (f"{role}.{layer}" if layer else role) / str(i)
+
+    def image(self, role: str, i: int) -> Path:
+        """Return the file of staged frame ``i`` of camera ``role`` (``extract.images.write_source``)."""
+        f = Path(self.dir) / role / str(i)
+        return f if f.exists() else f.with_name(f"{i}.npy")
 
     def raw_voxels(self, i: int) -> Path:
         """Return the .npy file of voxel map ``i`` staged in its own frame (base_link)."""
@@ -96,10 +104,11 @@ class Stager:
         make_parent(file, self.made)
         self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
 
-    def add_image(self, role: str, i: int, t: int, img: NDArray[np.uint8]) -> None:
-        """Stage image ``i`` (slice ordinal) of camera ``role`` stamped ``t``, decoded to RGB."""
-        W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
-        self._write(self.result.chunk(role, i), resize_image(img, W, H))
+    def add_image(self, role: str, i: int, t: int, src: Source) -> None:
+        """Stage frame ``i`` (slice ordinal) of camera ``role`` stamped ``t`` as it came."""
+        file = self.result.chunk(role, i)
+        make_parent(file, self.made)
+        self.writes.submit(write_source, file, src)
         self.result.ordinals[role].add(i)
         if role == "camera.front":  # a sample time is always a front frame
             for r in RANGES:

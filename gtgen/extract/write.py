@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.gridmap import decode_gridmap
-from gtgen.bag.decode.image import decode_image, resize_image
+from gtgen.bag.decode.image import image_source
 from gtgen.bag.decode.pointcloud import decode_scan
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
@@ -25,6 +25,7 @@ from gtgen.config import CAMERAS, RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract import mapped
 from gtgen.extract.calib import map_to_odom
+from gtgen.extract.images import StoredCamera, capacity, read_source
 from gtgen.extract.lidar import compact, deskew
 from gtgen.extract.roles import is_large
 from gtgen.extract.scan import Scan
@@ -41,7 +42,8 @@ log = logging.getLogger(__name__)
 Want = dict[str, dict[int, list[int]]]  # role -> {message ordinal: indices it fills}
 
 
-def write_small(w: DriveWriter, scan: Scan, track: PoseTrack, plan: Plan, K: NDArray, T_base_cam: NDArray) -> None:
+def write_small(w: DriveWriter, scan: Scan, track: PoseTrack, plan: Plan, cams: list[StoredCamera], K: NDArray,
+                T_base_cam: NDArray) -> None:
     """Write the poses, GNSS fixes, candidates, per-sample rows and calibration."""
     w.write_poses(track.t_ns, track.pos, track.quat)
     g = sorted(scan.gnss, key=lambda x: x[0])
@@ -56,7 +58,7 @@ def write_small(w: DriveWriter, scan: Scan, track: PoseTrack, plan: Plan, K: NDA
     dist = np.interp(plan.t.astype(np.float64), track.t_ns.astype(np.float64), track.distance())
     samples = DriveSamples(plan.t, pos, quat, dist, {r: plan.sample_map[r] for r in RANGES}, plan.image_t, plan.voxel_t,
                            plan.voxel_index, T_base_cam)
-    w.write_samples(samples, plan.voxel_map_t, K)
+    w.write_samples(samples, plan.voxel_map_t, K, np.array([cam.size for cam in cams], np.int64))
 
 
 def _wanted(plan: Plan) -> Want:
@@ -110,8 +112,11 @@ def _cat(xs: list[NDArray], dt: type, shape: tuple[int, ...] = ()) -> NDArray:
 class _Large:
     """Fills the store's images, maps and voxel clouds (see ``write_large``)."""
 
-    def __init__(self, w: DriveWriter, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices, tf: TfBuffer) -> None:
+    def __init__(self, w: DriveWriter, cfg: GtgenConfig, scan: Scan, plan: Plan, slices: Slices, tf: TfBuffer,
+                 cams: list[StoredCamera]) -> None:
         self.w, self.tmp, self.cfg, self.scan, self.plan, self.slices, self.tf = w, w.path, cfg, scan, plan, slices, tf
+        self.cams = cams
+        self.jpeg_nbytes = np.zeros((len(plan.t), len(CAMERAS)), np.int64)
         self.centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
         self.yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
         self.z0 = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
@@ -133,14 +138,15 @@ class _Large:
                      _cat(T, np.float64, (4, 4)))
 
     def create_arrays(self) -> None:
-        W, H = self.cfg.extract.image_width, self.cfg.extract.image_height
         maps = {r: (len(self.plan.map_t[r]), *self.scan.map_shape[f"map.{r}"], self.cfg.topics.odom_frame) for r in RANGES}
-        self.w.create_large(len(self.plan.t), (H, W), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points,
+        self.w.create_large(len(self.plan.t), capacity(self.cfg), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points,
                             len(self.scan_meta), self.cfg.extract.max_scan_points)
         self.vox = self.w.voxels()
 
-    def place_staged(self, want: Want) -> None:
-        """Move what the slices staged into place; note in ``missing`` what they did not."""
+    def place_staged(self, want: Want, pool: Pool) -> None:
+        """Move what the slices staged into place (the images converted to their stored
+        JPEG files on the pool); note in ``missing`` what they did not stage."""
+        jobs: list[tuple[str, int, list[int]]] = []  # (staged frame, camera, samples)
         for c_i, c in enumerate(CAMERAS):
             role = f"camera.{c}"
             for o, targets in want[role].items():
@@ -148,7 +154,12 @@ class _Large:
                 if stg is None or i not in stg.ordinals[role]:
                     self.missing[role][o] = targets
                     continue
-                self.w.place_image(stg.chunk(role, i), c_i, targets)
+                jobs.append((str(stg.image(role, i)), c_i, targets))
+        per = max(1, -(-len(jobs) // (4 * pool.workers)))
+        work = [(str(self.tmp), self.cams, jobs[a : a + per]) for a in range(0, len(jobs), per)]
+        for got in pool.map(store_images, work, "extract: storing images") if work else ():
+            for (s_i, c_i), n in got.items():
+                self.jpeg_nbytes[s_i, c_i] = n
         made = self.cfg.topics.from_lidar()  # made by the mapping pass, not read
         for r in RANGES:
             if r not in made:
@@ -198,11 +209,13 @@ class _Large:
             part = {role: {o: t for o, t in self.missing[role].items() if first[role] <= o < first[role] + n[role]}
                     for role in big.values()}
             if any(part.values()):
-                work.append((paths, self.cfg, big, str(self.tmp), a, b, first, part, self.tf, self.plan.map_t))
+                work.append((paths, self.cfg, big, str(self.tmp), a, b, first, part, self.tf, self.plan.map_t, self.cams))
         seen = 0
         with BackgroundWrites() as writes:
             for got in pool.map(read_slice, work, "extract: reading what no slice staged") if work else ():
                 seen += got.selected
+                for (s_i, c_i), n in got.jpeg_nbytes.items():
+                    self.jpeg_nbytes[s_i, c_i] = n
                 for (r, k_i), pose in got.maps.items():
                     self.centers[r][k_i], self.yaws[r][k_i], self.z0[r][k_i] = pose
                 for v, pts in got.voxels.items():
@@ -237,19 +250,20 @@ class _Large:
             writes.submit(arr.__setitem__, sc, row)
 
     def finish(self) -> None:
-        self.w.finish_large(self.n_points, {r: (self.plan.map_t[r], self.centers[r], self.yaws[r], self.z0[r]) for r in RANGES},
+        self.w.finish_large(self.n_points, self.jpeg_nbytes, {r: (self.plan.map_t[r], self.centers[r], self.yaws[r], self.z0[r]) for r in RANGES},
                             self.scan_meta)
         shutil.rmtree(self.tmp / STAGE, ignore_errors=True)
 
 
 def write_large(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], scan: Scan,
-                tf: TfBuffer, track: PoseTrack, plan: Plan, slices: Slices, pool: Pool, lidar: list[str]) -> int:
-    """Put the plan's images, maps, voxel clouds and raw scans in the store (the ones made from the raw
-    scans on ``lidar`` by the mapping pass); return how many kept messages no slice had
-    staged (read in a second pass)."""
-    large = _Large(w, cfg, scan, plan, slices, tf)
+                tf: TfBuffer, track: PoseTrack, plan: Plan, slices: Slices, pool: Pool, lidar: list[str],
+                cams: list[StoredCamera]) -> int:
+    """Put the plan's images (as ``cams`` store them), maps, voxel clouds and raw scans in the
+    store (the maps and voxel maps made from the raw scans on ``lidar`` by the mapping pass);
+    return how many kept messages no slice had staged (read in a second pass)."""
+    large = _Large(w, cfg, scan, plan, slices, tf, cams)
     large.create_arrays()
-    large.place_staged(_wanted(plan))
+    large.place_staged(_wanted(plan), pool)
     reread = large.read_missing(pool, paths, roles)
     if cfg.topics.from_lidar():
         centers, n_points = mapped.map_pass(w, paths, cfg, lidar, tf, track, plan, pool)
@@ -261,28 +275,40 @@ def write_large(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, roles: dict
     return reread
 
 
+def store_images(store: str, cams: list[StoredCamera], jobs: list[tuple[str, int, list[int]]]) -> dict[tuple[int, int], int]:
+    """Write staged frames as their stored JPEG files (a process-pool job): ``jobs`` gives
+    (staged frame file, camera index, samples); return {(sample, camera): JPEG bytes}."""
+    w = DriveWriter.reopen(Path(store))
+    out = {}
+    for file, c_i, targets in jobs:
+        jpeg = cams[c_i].stored(read_source(Path(file)))
+        w.put_image(cams[c_i].padded(jpeg), c_i, targets)
+        out.update({(s_i, c_i): len(jpeg) for s_i in targets})
+        Path(file).unlink()
+    return out
+
+
 @dataclass
 class SliceOut:
-    """What a targeted pass over one slice read: map poses and voxel points."""
+    """What a targeted pass over one slice read: map poses, voxel points, stored JPEG sizes."""
 
     selected: int
     maps: dict[tuple[str, int], tuple[NDArray, float, float]]  # (range, kept index) -> centre, yaw, height in odom
     voxels: dict[int, NDArray]  # kept voxel map index -> points in odom
+    jpeg_nbytes: dict[tuple[int, int], int]  # (sample, camera) -> bytes of its stored JPEG
     scans: dict[tuple[int, ...], tuple[NDArray, int, NDArray]] = field(default_factory=dict)  # kept scan indexes -> (stored row, points, origin shift)
 
 
 def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store: str, start: int | None, stop: int | None,
-               first: dict[str, int], want: Want, tf: TfBuffer, map_t: dict[str, NDArray]) -> SliceOut:
+               first: dict[str, int], want: Want, tf: TfBuffer, map_t: dict[str, NDArray], cams: list[StoredCamera]) -> SliceOut:
     """The targeted second pass over [start, stop) (a process-pool job): decode the kept
-    messages in ``want``, write images and maps into their chunks; return map poses and
-    voxel points."""
+    messages in ``want``, write images and maps into their chunks; return map poses,
+    voxel points and the stored JPEG sizes."""
     tp = cfg.topics
-    W, H = cfg.extract.image_width, cfg.extract.image_height
     layer_names = (tp.layers.elevation, tp.layers.risk, tp.layers.confidence)
     w = DriveWriter.reopen(Path(store))
-    images = w.images()
     maps = {r: {name: w.map_layer(r, name) for name in MAP_LAYERS} for r in RANGES}
-    out = SliceOut(0, {}, {})
+    out = SliceOut(0, {}, {}, {})
     if not any(want.values()):
         return out
     ordinal = dict(first)
@@ -299,9 +325,9 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
                 raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
             if role.startswith("camera."):
                 c_i = CAMERAS.index(role.split(".")[1])
-                img = resize_image(decode_image(msg, msgtype), W, H)
-                for s_i in targets:
-                    runs.put(images, s_i, img, (c_i,))
+                jpeg = cams[c_i].stored(image_source(msg, msgtype))
+                w.put_image(cams[c_i].padded(jpeg), c_i, targets)
+                out.jpeg_nbytes.update({(s_i, c_i): len(jpeg) for s_i in targets})
             elif role == "voxel_map":
                 pts = voxel_points(msg, cfg, tf)
                 for v in targets:

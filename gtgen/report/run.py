@@ -68,6 +68,8 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
         "samples_kept_by_odometry": int(np.isnan(fit).sum()),  # over set-aside tiles, no ICP (dem.carry_over_m)
         "samples_rejected": {codes.reason_name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
         "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
+        "split_by_drive": _split_by_drive(ds, split),
+        "image_bytes_per_sample": _image_bytes(ds),
         "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(ds, r, idx).items()} for r in RANGES} if S else {},
         "icp_fitness": quantiles(np.concatenate([fit, rfit[np.isfinite(rfit)]])),
         "icp_rmse_m": quantiles(ds.meta("icp_rmse_m")),
@@ -88,3 +90,17 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     rep.figures = figures(ds, rep, out_dir, fit, rfit, rej_reason, overwrite) + [signal_figure(ds, cfg.dem, out_dir, overwrite)]
     write_json(out_dir / REPORT_JSON, {"card": rep.card, "truth": rep.truth}, overwrite, indent=2, default=float)
     return rep
+
+
+def _split_by_drive(ds: DatasetStore, split: np.ndarray) -> dict[str, dict[str, int]]:
+    """Return {drive name: {split name: samples}} (every split named, zeros included)."""
+    drive = ds.meta("drive")
+    return {entry.name: {name: int(((drive == d) & (split == code)).sum()) for code, name in codes.SPLITS.items()}
+            for d, entry in enumerate(ds.info.drives)}
+
+
+def _image_bytes(ds: DatasetStore) -> float:
+    """Return the mean bytes of a sample's four stored JPEG files."""
+    if not ds.n_samples:
+        return 0.0
+    return round(float(ds.jpeg_bytes().sum(axis=1).mean()), 1)

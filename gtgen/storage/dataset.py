@@ -33,7 +33,7 @@ from gtgen.storage.stores import Rows, Store, StoreWriter
 
 GRID_KINDS = {"labels": ("elevation_m", "risk", "confidence", "region", "count", "last_dt_s"),
               "xracer": ("elevation_m", "risk", "confidence"), "dem": ("elevation_m",)}
-SAMPLE_INPUTS = ("images", "K", "T_base_cam", "T_target_base", "raw_elevation_m")
+SAMPLE_INPUTS = ("jpeg", "jpeg_nbytes", "K", "T_base_cam", "T_target_base", "raw_elevation_m")
 REJECTED = tuple(s for s in DATASET.arrays if s.path.startswith("rejected/"))  # one row per rejected sample
 
 
@@ -47,6 +47,11 @@ def _leaf(group: str, name: str) -> str:
     path = f"{group}/{name}"
     DATASET.spec(path)  # KeyError for a name the format does not have
     return path
+
+
+def jpeg_files(rows: NDArray[np.uint8], nbytes: NDArray) -> list[bytes]:
+    """Return the JPEG files of one sample's padded rows (4, B) and lengths (4,)."""
+    return [rows[c, : int(n)].tobytes() for c, n in enumerate(nbytes)]
 
 
 class DatasetStore(Store):
@@ -78,10 +83,24 @@ class DatasetStore(Store):
         return self.shape(_grid_path("labels", rng, "region"))[1]
 
     @property
-    def image_hw(self) -> tuple[int, int]:
-        """Stored image height, width [px]."""
-        s = self.shape("inputs/images")
-        return s[2], s[3]
+    def jpeg_capacity(self) -> int:
+        """Bytes of the zero-padded row holding each stored JPEG file (B)."""
+        return self.shape("inputs/jpeg")[2]
+
+    def jpeg_bytes(self) -> NDArray[np.int64]:
+        """Return the length of every stored JPEG file (S, 4) [bytes]."""
+        return self.read("inputs/jpeg_nbytes").astype(np.int64) if self.n_samples else np.zeros((0, 4), np.int64)
+
+    def jpeg_files(self, k: int) -> list[bytes]:
+        """Return sample ``k``'s four JPEG files (front, left, right, back) as stored."""
+        return jpeg_files(self.inputs("jpeg")[k], self.inputs("jpeg_nbytes")[k])
+
+    def images(self, k: int) -> list[NDArray[np.uint8]]:
+        """Return sample ``k``'s four images decoded (H, W, 3) RGB, at the size of their
+        JPEG (the size ``inputs/K`` is for)."""
+        from gtgen.bag.decode.image import decode_file
+
+        return [decode_file(f) for f in self.jpeg_files(k)]
 
     def meta(self, name: str, rows: Any = None) -> NDArray:
         """Return per-sample metadata ``name`` (``meta/<name>`` of data_schema.md), whole or ``rows``."""
@@ -195,11 +214,12 @@ class ShardWriter(StoreWriter):
 
     fmt = DATASET
 
-    def __init__(self, path: Path, max_samples: int, micro: int, short: int, image_hw: tuple[int, int],
+    def __init__(self, path: Path, max_samples: int, micro: int, short: int, jpeg_capacity: int,
                  scans: tuple[int, int] | None = None) -> None:
         super().__init__(path)
         _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
-        dims = {"n_m": micro, "n_s": short, "H": image_hw[0], "W": image_hw[1]}
+        dims = {"n_m": micro, "n_s": short, "B": jpeg_capacity}
+        self.jpeg_capacity = jpeg_capacity
         if scans is not None:
             dims.update({"P_s": scans[0], "N_s": scans[1]})
         self.arrays: dict[str, Any] = {}
@@ -222,8 +242,9 @@ class ShardWriter(StoreWriter):
             self.offsets.append(self.offsets[-1] + len(p))
         self.n += len(points)
 
-    def append_dataset(self, src: DatasetStore, drive: int, label: str) -> int:
-        """Append every sample of dataset ``src`` as drive index ``drive``; return how many.
+    def append_dataset(self, src: DatasetStore, drive: int, label: str, split: int | None = None) -> int:
+        """Append every sample of dataset ``src`` as drive index ``drive`` (all in split
+        code ``split`` if given, else in the splits they have); return how many.
 
         Per-sample arrays move as encoded shard bytes where both layouts agree (see
         ``storage.shards.copy_samples``, which checks each shard file against ``src``'s
@@ -249,6 +270,8 @@ class ShardWriter(StoreWriter):
                 pass
         if S:
             self.arrays["meta/drive"][off : off + S] = np.full(S, drive, np.uint16)
+            if split is not None:
+                self.arrays["meta/split"][off : off + S] = np.full(S, split, np.uint8)
         voff = src.voxel_offsets()
         pts = src.voxel_points()
         n_pts, step = (int(voff[-1]) if len(voff) else 0), int(src.array("inputs/voxel_points_m").chunks[0])

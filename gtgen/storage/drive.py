@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from gtgen.config import RANGES, GtgenConfig, stored_config
 from gtgen.geometry import quat_to_yaw
-from gtgen.storage.chunks import check_encoded_chunks, chunk_file, place_chunk
+from gtgen.storage.chunks import check_encoded_chunks, chunk_file, encode_chunk, make_parent, place_chunk
 from gtgen.storage.schema import DRIVE, MAP_LAYERS
 from gtgen.storage.stores import Rows, Store, StoreWriter
 
@@ -127,7 +127,7 @@ class DriveStore(Store):
 
     @property
     def image_size(self) -> tuple[int, int]:
-        """Stored image width, height [px]."""
+        """The box stored images fit in: width, height [px] (``image_sizes`` per camera)."""
         w, h = self.attrs["image_size"]
         return int(w), int(h)
 
@@ -164,13 +164,23 @@ class DriveStore(Store):
         return MapStream(self.read(f"{g}/t_ns"), self.read(f"{g}/center_odom_m"), self.read(f"{g}/yaw_odom_rad"),
                          self.read(f"{g}/z_offset_m"), res, tuple(self.rows(f"{g}/{n}") for n in MAP_LAYERS))  # type: ignore[arg-type]
 
-    def images(self, ks: NDArray) -> NDArray[np.uint8]:
-        """Return the images of samples ``ks`` (sorted): (len(ks), 4, H, W, 3) RGB."""
-        return self.read("samples/images", ks)
+    def jpeg(self, ks: NDArray) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
+        """Return the stored JPEG files of samples ``ks`` (sorted): their zero-padded rows
+        (len(ks), 4, B) and lengths (len(ks), 4) [bytes]."""
+        return self.read("samples/jpeg", ks), self.read("samples/jpeg_nbytes", ks)
+
+    @property
+    def jpeg_capacity(self) -> int:
+        """Bytes of the zero-padded row holding each stored JPEG file (B)."""
+        return self.shape("samples/jpeg")[2]
 
     def K(self) -> NDArray[np.float64]:
-        """Return the intrinsics of the four cameras at the stored image size (4, 3, 3) [px]."""
+        """Return the intrinsics of the four cameras' stored (rectified) images (4, 3, 3) [px]."""
         return self.read("calib/K")
+
+    def image_sizes(self) -> NDArray[np.int64]:
+        """Return the (width, height) of each camera's stored images (4, 2) [px]."""
+        return self.read("calib/image_size")
 
     def voxel_counts(self) -> NDArray[np.int64]:
         """Return the points of each stored voxel map."""
@@ -223,22 +233,25 @@ class DriveWriter(StoreWriter):
         self.write("candidates/t_ns", t_ns)
         self.write("candidates/reason", reason)
 
-    def write_samples(self, s: DriveSamples, voxel_map_t_ns: NDArray, K: NDArray) -> None:
-        """Write the samples, the stamps of the voxel maps they use and the intrinsics."""
+    def write_samples(self, s: DriveSamples, voxel_map_t_ns: NDArray, K: NDArray, image_size: NDArray) -> None:
+        """Write the samples, the stamps of the voxel maps they use, the intrinsics and the
+        stored image sizes."""
         for name in ("t_ns", "pos_odom_m", "quat_odom_xyzw", "distance_m", "image_t_ns", "voxel_t_ns", "voxel_index", "T_base_cam"):
             self.write(f"samples/{name}", getattr(s, name))
         for rng in RANGES:
             self.write(f"samples/map_index_{rng}", s.map_index[rng])
         self.write("voxel_maps/t_ns", voxel_map_t_ns)
         self.write("calib/K", K)
+        self.write("calib/image_size", image_size)
 
-    def create_large(self, S: int, image_hw: tuple[int, int], maps: dict[str, tuple[int, tuple[int, int], float, str]],
+    def create_large(self, S: int, jpeg_capacity: int, maps: dict[str, tuple[int, tuple[int, int], float, str]],
                      V: int, P: int, L: int = 0, Q: int = 1) -> None:
-        """Create the image, map, voxel and raw scan arrays: ``maps`` gives per range (kept
-        maps, grid shape, cell size [m], frame); L scans of Q points. One chunk per image,
-        map layer, voxel map and scan."""
-        H, W = image_hw
-        self.create("samples/images", (S, 4, H, W, 3), chunks=(1, 1, H, W, 3), flat=True)
+        """Create the image, map, voxel and raw scan arrays: ``jpeg_capacity`` is the row of
+        bytes one stored JPEG gets, ``maps`` gives per range (kept maps, grid shape, cell
+        size [m], frame); L scans of Q points. One chunk per image, map layer, voxel map
+        and scan."""
+        B = jpeg_capacity
+        self.create("samples/jpeg", (S, 4, B), chunks=(1, 1, B), flat=True)
         for r, (n, shape, res, frame) in maps.items():
             for name in MAP_LAYERS:
                 self.create(f"maps/{r}/{name}", (n, *shape), chunks=(1, *shape), flat=True)
@@ -246,9 +259,17 @@ class DriveWriter(StoreWriter):
         self.create("voxel_maps/points_odom_m", (V, P, 3), chunks=(1, P, 3), flat=True)
         self.create("scans/points_cm", (L, Q, 3), chunks=(1, Q, 3), flat=True)
 
-    def images(self) -> Any:
-        """Return the zarr array of the images (for batched writes)."""
-        return self.root["samples/images"]
+    def put_image(self, row: NDArray[np.uint8], camera: int, samples: list[int]) -> None:
+        """Write the padded JPEG ``row`` at camera index ``camera`` of ``samples`` (one
+        chunk file each, as zarr would write it)."""
+        path = "samples/jpeg"
+        if path not in self._seps:
+            self._seps[path] = check_encoded_chunks(self.root[path])
+        data = encode_chunk(row.reshape(1, 1, -1))
+        for s in samples:
+            f = chunk_file(self.path, path, (s, camera, 0), self._seps[path])
+            make_parent(f, self._made)
+            f.write_bytes(data)
 
     def map_layer(self, rng: str, layer: str) -> Any:
         """Return the zarr array of map layer ``layer`` (``schema.MAP_LAYERS``) of range ``rng``."""
@@ -270,10 +291,6 @@ class DriveWriter(StoreWriter):
         for n, c in enumerate(coords):
             place_chunk(src, chunk_file(self.path, path, c, self._seps[path]), move=n == len(coords) - 1, made=self._made)
 
-    def place_image(self, src: Path, camera: int, samples: list[int]) -> None:
-        """Put staged image chunk ``src`` at camera index ``camera`` of ``samples``."""
-        self._place(src, "samples/images", [(s, camera, 0, 0, 0) for s in samples])
-
     def place_map(self, src: Path, rng: str, layer: str, maps: list[int]) -> None:
         """Put staged map-layer chunk ``src`` at kept maps ``maps`` of range ``rng``."""
         self._place(src, f"maps/{rng}/{layer}", [(k, 0, 0) for k in maps])
@@ -286,12 +303,15 @@ class DriveWriter(StoreWriter):
         """Put staged scan chunk ``src`` at scans ``ls``."""
         self._place(src, "scans/points_cm", [(sc, 0, 0) for sc in ls])
 
-    def finish_large(self, n_points: NDArray, maps: dict[str, tuple[NDArray, NDArray, NDArray, NDArray]], scans: Scans) -> None:
-        """Write each voxel map's point count, per range the kept maps' (stamps, centres
-        in odom, yaw in odom, height offset), and the kept scans' rows but their points."""
+    def finish_large(self, n_points: NDArray, jpeg_nbytes: NDArray, maps: dict[str, tuple[NDArray, NDArray, NDArray, NDArray]],
+                     scans: Scans) -> None:
+        """Write each voxel map's point count, each stored JPEG's length, per range the kept
+        maps' (stamps, centres in odom, yaw in odom, height offset), and the kept scans'
+        rows but their points."""
         for name in ("t_ns", "lidar", "n_points", "distance_m", "T_odom_sensor"):
             self.write(f"scans/{name}", getattr(scans, name))
         self.write("voxel_maps/n_points", n_points)
+        self.write("samples/jpeg_nbytes", jpeg_nbytes)
         for r, (t, centers, yaws, z0) in maps.items():
             self.write(f"maps/{r}/t_ns", t)
             self.write(f"maps/{r}/center_odom_m", centers)

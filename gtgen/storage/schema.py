@@ -5,9 +5,9 @@ A store is a Zarr v3 group whose attributes say its ``store`` kind, its version 
 (name, dtype, shape symbols, units, frame, fill, meaning); ``data_schema.md`` mirrors
 these lists and ``tests/test_schema_doc.py`` checks that they agree. Shape symbols: N
 poses, G fixes, M_r kept maps of range r, C candidates, S samples, V voxel maps, R
-rejected samples, n_m / n_s micro / short cells per side, H x W the stored image size,
-P voxel points, L kept raw scans, Q = extract.max_scan_points, P_s =
-shards.max_scan_points, N_s = shards.max_scans. The target frame of a sample is vehicle-centric and gravity-aligned at
+rejected samples, n_m / n_s micro / short cells per side, B the bytes a stored JPEG may
+take (3 x extract.image_width x image_height), P voxel points, L kept raw scans, Q =
+extract.max_scan_points, P_s = shards.max_scan_points, N_s = shards.max_scans. The target frame of a sample is vehicle-centric and gravity-aligned at
 its time t (see data_schema.md).
 """
 
@@ -31,6 +31,7 @@ class StoreFormat:
     version: int
     arrays: tuple[ArraySpec, ...]
     made_by: str
+    rebuild: str = ""  # how a store of an older version is rebuilt (it may need earlier stages again)
 
     def spec(self, path: str) -> ArraySpec:
         """Return the spec of array ``path``."""
@@ -71,7 +72,8 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("samples/distance_m", "float64", "(S,)", "m", "-", "-", "odometry travel since the drive start"),
     ArraySpec("samples/map_index_micro", "int64", "(S,)", "-", "-", "-", "index into maps/micro of the X-Racer map at t"),
     ArraySpec("samples/map_index_short", "int64", "(S,)", "-", "-", "-", "index into maps/short of the X-Racer map at t"),
-    ArraySpec("samples/images", "uint8", "(S, 4, H, W, 3)", "RGB", "camera", "-", "front, left, right, back; resized to extract.image_*"),
+    ArraySpec("samples/jpeg", "uint8", "(S, 4, B)", "JPEG file", "camera (rectified)", "0", "front, left, right, back: the JPEG file in bytes [0, jpeg_nbytes), zeros after; the camera's own when not resized or rectified (see Images)"),
+    ArraySpec("samples/jpeg_nbytes", "int64", "(S, 4)", "bytes", "-", "-", "length of each stored JPEG file"),
     ArraySpec("samples/image_t_ns", "int64", "(S, 4)", "ns", "-", "-", "stamp of each image"),
     ArraySpec("samples/voxel_t_ns", "int64", "(S,)", "ns", "-", "-", "stamp of the voxel map used"),
     ArraySpec("samples/voxel_index", "int64", "(S,)", "-", "-", "-", "index into voxel_maps of the voxel map used"),
@@ -79,7 +81,8 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("voxel_maps/n_points", "int64", "(V,)", "-", "-", "-", "points of each voxel map (at most shards.max_voxel_points)"),
     ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
     ArraySpec("samples/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics at each image's stamp (TF)"),
-    ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera", "-", "intrinsics rescaled to the stored image size"),
+    ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera (rectified)", "-", "intrinsics of the stored (rectified) images: CameraInfo's K rescaled to calib/image_size"),
+    ArraySpec("calib/image_size", "int64", "(4, 2)", "px", "-", "-", "width, height of each camera's stored images"),
     ArraySpec("scans/t_ns", "int64", "(L,)", "ns", "-", "-", "header stamp of each kept raw scan (lidar role; sorted by lidar, then stamp)"),
     ArraySpec("scans/lidar", "uint8", "(L,)", "-", "-", "-", "the scan's lidar: index into topics.lidar of the stored config"),
     ArraySpec("scans/n_points", "int64", "(L,)", "-", "-", "-", "points of each scan (at most extract.max_scan_points, the nearest kept)"),
@@ -88,7 +91,8 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("scans/points_cm", "int16", "(L, Q, 3)", "cm", "sensor at the stamp", "-32768", "points of scan l in rows [0, n_points[l]), motion-corrected to the stamp if the cloud has per-point times; one chunk per scan"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 5, tuple(_DRIVE), "gtgen extract BAG")
+DRIVE = StoreFormat("gtgen-drive", 6, tuple(_DRIVE), "gtgen extract BAG",
+                    "re-run 'gtgen extract BAG --overwrite' (version 6 stores the images as JPEG files and the raw lidar scans)")
 
 
 # -- the fused store (``gtgen fuse``) ------------------------------------------------------
@@ -133,8 +137,9 @@ for _r in RANGES:
         ArraySpec(f"dem/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "aligned DEM, bilinear"),
     ]
 _DATASET += [
-    ArraySpec("inputs/images", "uint8", "(S, 4, H, W, 3)", "RGB", "camera", "0", "front, left, right, back"),
-    ArraySpec("inputs/K", "float64", "(S, 4, 3, 3)", "px", "camera", "0", "intrinsics for the stored image size"),
+    ArraySpec("inputs/jpeg", "uint8", "(S, 4, B)", "JPEG file", "camera (rectified)", "0", "front, left, right, back: the JPEG file in bytes [0, jpeg_nbytes), zeros after (see Images)"),
+    ArraySpec("inputs/jpeg_nbytes", "int32", "(S, 4)", "bytes", "-", "0", "length of each stored JPEG file"),
+    ArraySpec("inputs/K", "float64", "(S, 4, 3, 3)", "px", "camera (rectified)", "0", "intrinsics of the stored (rectified) image, at the size its JPEG header gives"),
     ArraySpec("inputs/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base <- camera optical", "0", "camera extrinsics"),
     ArraySpec("inputs/T_target_base", "float64", "(S, 4, 4)", "m", "target <- base", "0", "the base's roll and pitch in the target frame"),
     ArraySpec("inputs/raw_elevation_m", "float32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell"),
@@ -154,7 +159,7 @@ _DATASET += [
     ArraySpec("meta/dem_disagreement", "float32", "(S,)", "0..1", "-", "0", "share of observed ground cells beyond dem.disagreement_m from the aligned DEM"),
     ArraySpec("meta/gnss_offset_m", "float32", "(S,)", "m", "DEM CRS", "NaN", "median distance of the window's GNSS fixes from the placed track (NaN: too few fixes)"),
     ArraySpec("meta/vegetation_share", "float32", "(S,)", "0..1", "-", "0", "share of observed cells left out of ICP as vegetation"),
-    ArraySpec("meta/split", "uint8", "(S,)", "code", "-", "0", "0 train, 1 val (by geography block)"),
+    ArraySpec("meta/split", "uint8", "(S,)", "code", "-", "0", "0 train, 1 val (by geography block), 2 test (whole drives held out: split: test in the build manifest)"),
     ArraySpec("rejected/t_ns", "int64", "(R,)", "ns", "-", "0", "time of each rejected sample"),
     ArraySpec("rejected/drive", "uint16", "(R,)", "-", "-", "0", "drive of each rejected sample"),
     ArraySpec("rejected/reason", "uint8", "(R,)", "code", "-", "0", "why (gtgen.codes)"),
@@ -179,7 +184,9 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 5, tuple(_DATASET + COORDS), "gtgen dem-align")
+DATASET = StoreFormat("gtgen-dataset", 6, tuple(_DATASET + COORDS), "gtgen dem-align",
+                      "rebuild it from its bags with 'gtgen build DRIVES... -o OUT --overwrite' (or gtgen extract, fuse and "
+                      "dem-align, each with --overwrite): version 6 stores the images as JPEG files, has a test split and the N-scan input")
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
 # are there only when the drives have raw scans
@@ -223,6 +230,6 @@ class DatasetAttrs(BaseModel):
     reasons: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.REASONS.items()})
     regions: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.REGIONS.items()})
     splits: dict[str, str] = Field(default_factory=lambda: {str(k): v for k, v in codes.SPLITS.items()})
-    image_size: tuple[int, int] = Field(description="stored image width, height [px]")
+    image_size: tuple[int, int] = Field(description="the box stored images fit in: extract.image_width, image_height [px] (each JPEG's header gives its own size)")
     cameras: list[str]
     provenance: dict[str, Any] | None = Field(None, description="dependency versions and per-drive timings (gtgen build)")

@@ -138,7 +138,7 @@ def complete_attrs(path: Path, fmt: StoreFormat) -> dict[str, Any]:
         raise StoreError(f"'{path}' is not a gtgen {name} store (store={attrs.get('store')!r}, expected {fmt.kind!r})")
     if attrs.get("version") != fmt.version:
         raise StoreError(f"{name} store '{path}' has version {attrs.get('version')}; this gtgen reads version "
-                         f"{fmt.version}: re-run '{fmt.made_by}'")
+                         f"{fmt.version}: {fmt.rebuild or f're-run {fmt.made_by!r}'}")
     if not attrs.get("complete"):
         raise StoreError(f"{name} store '{path}' is incomplete; re-run '{fmt.made_by}'")
     return attrs

@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gtgen.bag.decode.image import encode_jpeg, resize_image
 from gtgen.bag.messages import MessageFactory, open_mcap_writer
 from gtgen.config import LIDARS, GtgenConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
-from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rpy_to_quat
+from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rescale_K, rpy_to_quat
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
@@ -29,6 +30,7 @@ MAP_LATENCY_NS = 50_000_000
 GNSS_FRAME = "gnss_link"
 LIDAR_FRAME = "lidar"
 VOXEL_M = 0.4
+JPEG_QUALITY = 90  # of the simulated cameras' CompressedImage frames
 VOXEL_HALF_M = 100.0
 
 
@@ -292,20 +294,21 @@ class _Ticker:
         self._msg(out, tp.voxel_map, "sensor_msgs/msg/PointCloud2", t, lambda f: f.pointcloud_xyz(t, tp.odom_frame, vx, k // self.vox_p))
 
     def _cameras(self, out: list, k: int) -> None:
-        from PIL import Image
-
         sc, tp, poses = self.cfg.synth, self.cfg.topics, self.world.poses
         t = int(self.world.t_ns[k])
         T_wb = make_transform(quat_to_matrix(self.q_true[k]), poses.pos[k])
+        size, rsize = (sc.image_width, sc.image_height), (sc.render_width, sc.render_height)
+        K_render = rescale_K(self.K, size, rsize)
         for c, topics in tp.cameras.items():
-            img = sensors.render(sc, self.raster, T_wb @ self.T_base_cam[c], self.K)
-            buf = io.BytesIO()
-            Image.fromarray(img).save(buf, format="JPEG", quality=90)
-            jpeg = buf.getvalue()
+            lens = sensors.camera_lens(sc, c)
+            img = sensors.render(self.raster, T_wb @ self.T_base_cam[c], K_render, rsize, lens if lens.distorted else None)
+            # the camera's frame: the render upsampled (a smooth world; rays cost, pixels do not)
+            jpeg = encode_jpeg(resize_image(img, *size), JPEG_QUALITY)
             frame = camera_frame(c)
             seq = k // self.cam_p
+            D = np.asarray(sc.distortion if lens.distorted else np.zeros(5))
             self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f, frame=frame, jpeg=jpeg, seq=seq: f.compressed_image(t, frame, jpeg, seq))
-            self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f, frame=frame, seq=seq: f.camera_info(t, frame, sc.image_width, sc.image_height, self.K, seq))
+            self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f, frame=frame, seq=seq, D=D: f.camera_info(t, frame, *size, self.K, seq, D))
 
 
 _TICKER: _Ticker | None = None  # the worker's ticker, made by _start_worker

@@ -8,6 +8,7 @@ and the maximum range. Everything is vectorised over samples.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from numpy.typing import NDArray
 
 from gtgen.config import GridSpec, SynthConfig
 from gtgen.geometry import quat_to_matrix, rpy_to_quat
+from gtgen.lens import Lens
 from gtgen.synth.terrain import Terrain
 
 N_AZ = 720
@@ -277,12 +279,32 @@ def march_naive(raster: RenderRaster, o: NDArray[np.float32], rays: NDArray[np.f
     return np.argmax(below, axis=1), below.any(axis=1)
 
 
-def render(cfg: SynthConfig, raster: RenderRaster, T_world_cam: NDArray, K: NDArray) -> NDArray[np.uint8]:
-    """Return an RGB image (H, W, 3) rendered by marching each pixel's ray over the raster."""
-    H, W = cfg.image_height, cfg.image_width
+def camera_lens(cfg: SynthConfig, name: str) -> Lens:
+    """Return the lens of camera ``name``: plumb_bob ``cfg.distortion`` on ``cfg.distorted_camera``, else none."""
+    return Lens.of("plumb_bob", cfg.distortion) if name == cfg.distorted_camera else Lens.of("plumb_bob", np.zeros(5))
+
+
+@functools.lru_cache(maxsize=8)
+def camera_rays(K: tuple[float, ...], size: tuple[int, int], lens: Lens | None) -> NDArray[np.float64]:
+    """Return the ray (x, y, 1) in the optical frame that each pixel of a ``size`` camera
+    with intrinsics K (flat) and ``lens`` sees (H * W, 3): the same for every frame."""
+    W, H = size
+    k = np.asarray(K).reshape(3, 3)
     px, py = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    rays = np.stack([(px - K[0, 2]) / K[0, 0], (py - K[1, 2]) / K[1, 1], np.ones_like(px)], -1).reshape(-1, 3)
-    rays = (rays @ T_world_cam[:3, :3].T).astype(np.float32)
+    xn, yn = (px - k[0, 2]) / k[0, 0], (py - k[1, 2]) / k[1, 1]
+    if lens is not None:  # the pixel sees the ray whose distorted image it is
+        xn, yn = lens.undistort(xn, yn)
+    rays = np.stack([xn, yn, np.ones_like(px)], -1).reshape(-1, 3)
+    rays.setflags(write=False)
+    return rays
+
+
+def render(raster: RenderRaster, T_world_cam: NDArray, K: NDArray, size: tuple[int, int], lens: Lens | None = None) -> NDArray[np.uint8]:
+    """Return an RGB image (H, W, 3) of ``size`` (W, H) rendered by marching each pixel's
+    ray over the raster, through intrinsics K (at ``size``) and ``lens`` (None: a pinhole)."""
+    W, H = size
+    py = np.broadcast_to(np.arange(H, dtype=np.float64)[:, None], (H, W))
+    rays = (camera_rays(tuple(np.asarray(K, np.float64).ravel()), size, lens) @ T_world_cam[:3, :3].T).astype(np.float32)
     # march in a frame centred on the raster origin so float32 keeps centimetres
     o = (T_world_cam[:3, 3] - np.array([raster.u0, raster.v0, 0.0])).astype(np.float32)
     k, hit = march(raster, o, rays)

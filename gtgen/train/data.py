@@ -6,6 +6,7 @@ works), elevations are clipped to +-``elevation_clip_m`` and scaled to +-1.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from gtgen.dataset.scans import first_per_voxel
 from gtgen.errors import TrainError
 from gtgen.geometry import rescale_K
 from gtgen.grids import bilinear, filled, nearest_index, point_distance, raw_min_z, smoothed_min_z
-from gtgen.storage.dataset import DatasetStore
+from gtgen.storage.dataset import DatasetStore, jpeg_files
 from gtgen.train.model import bev_grid
 
 
@@ -43,6 +44,42 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
     return raw[np.ix_(ix, ix)]
 
 
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+def decode_at(jpeg: bytes, width: int, height: int) -> tuple[NDArray[np.uint8], tuple[int, int]]:
+    """Return a JPEG file decoded and resized to width x height (H, W, 3) RGB, and the
+    source extent (width, height) [px of the stored image] the result spans, for
+    ``rescale_K``. A smaller size is decoded at 1/2, 1/4 or 1/8 scale first (libjpeg's DCT
+    scaling, which costs a fraction of a full decode), then resized (antialiased
+    bilinear): the extent is then that of the scaled decode's whole blocks."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(jpeg)) as img:
+            w, h = img.size
+            img.draft("RGB", (width, height))
+            f = max(1, int(round(w / img.size[0])))
+            src = (img.size[0] * f, img.size[1] * f) if f > 1 else (w, h)
+            img = img.convert("RGB")
+            if img.size != (width, height):
+                img = img.resize((width, height), Image.BILINEAR)
+            return np.asarray(img), src
+    except Exception as err:  # noqa: BLE001 - PIL raises several types
+        raise TrainError(f"a stored JPEG of {len(jpeg)} bytes does not decode ({err}); rebuild the dataset") from err
+
+
 # why a dataset cannot give the N-scan input, and how to get it
 NO_SCANS = ("holds no raw lidar scans, which train.geometry: scans reads (Tab. III's N-scan input); map the bags' PointCloud2 "
             "scans to the lidar role (topics.lidar) and rebuild it with gtgen extract, fuse and dem-align")
@@ -63,8 +100,9 @@ class ShardDataset(Dataset):
     key                          shape, dtype            meaning
     ===========================  ======================  ==========================================
     index                        (), int64               dataset sample index
-    images                       (4, 3, H, W), uint8     front, left, right, back; RGB bytes (the model
-                                                         normalises them: ``model.normalize_images``)
+    images                       (4, 3, H, W), uint8     front, left, right, back; RGB bytes decoded from
+                                                         the stored JPEG at the model's size (the
+                                                         model normalises them: ``model.normalize_images``)
     K                            (4, 3, 3), float32      intrinsics at the model's image size [px]
     T_target_cam                 (4, 4, 4), float32      target <- camera optical [m]
     points, n_points             (P, 3) float32, ()      voxel points (train.geometry: scans, the
@@ -113,9 +151,6 @@ class ShardDataset(Dataset):
         self._offsets = store.voxel_offsets()
         self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
         bev_m, self._bev_size = bev_grid(tc, self.data_cfg.grids)
-        W_in, H_in = store.info.image_size
-        self._img_ix = (nearest_index(H_in, tc.image_height), nearest_index(W_in, tc.image_width))
-        self._img_src = (W_in, H_in)
         # smoothing window of each range's prior, in that range's model cells (odd)
         grids = self.data_cfg.grids
         cells = {"micro": grids.micro.length_m / tc.micro_size, "bev": bev_m / self._bev_size}
@@ -154,7 +189,7 @@ class ShardDataset(Dataset):
         worker (per-sample arrays one shard-file read each, the flat points by range)."""
         if self._r is None:
             st = self.store
-            self._r = {n: st.inputs(n) for n in ("images", "K", "T_target_base", "T_base_cam", "raw_elevation_m")}
+            self._r = {n: st.inputs(n) for n in ("jpeg", "jpeg_nbytes", "K", "T_target_base", "T_base_cam", "raw_elevation_m")}
             self._r["points"] = st.voxel_points()
             if self.scans:
                 self._r["scan_points"], self._r["scan_counts"] = st.scan_input()
@@ -163,14 +198,17 @@ class ShardDataset(Dataset):
                              ("xracer", "risk"))})
         return self._r
 
-    def _images(self, raw: NDArray[np.uint8]) -> NDArray[np.uint8]:
-        """Return the cameras' images (n, H, W, 3 uint8) at the model's size, as (n, 3, h, w)
-        bytes (resampled by nearest pixel); ``gtgen.train.model.normalize_images`` makes the
-        network's floats on the device, where it costs nothing next to the forward pass."""
-        ri, ci = self._img_ix
-        if len(ri) != raw.shape[1] or len(ci) != raw.shape[2]:  # else the stored size is the model's
-            raw = raw[:, ri][:, :, ci]
-        return np.ascontiguousarray(raw.transpose(0, 3, 1, 2))
+    def _images(self, files: list[bytes], K: NDArray) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+        """Return the cameras' images decoded at the model's size, as (n, 3, h, w) bytes, and
+        their intrinsics (n, 3, 3) at that size; ``gtgen.train.model.normalize_images``
+        makes the network's floats on the device."""
+        W, H = self.tc.image_width, self.tc.image_height
+        imgs, Ks = [], []
+        for f, Kc in zip(files, K):
+            img, src = decode_at(f, W, H)
+            imgs.append(img)
+            Ks.append(rescale_K(Kc, src, (W, H)))
+        return np.ascontiguousarray(np.stack(imgs).transpose(0, 3, 1, 2)), np.stack(Ks)
 
     def _grid(self, arr: NDArray, rng: str) -> NDArray:
         ix = self._ix[rng]
@@ -182,8 +220,8 @@ class ShardDataset(Dataset):
         tc = self.tc
         out: dict[str, torch.Tensor] = {"index": torch.tensor(k)}
         if tc.cameras:
-            out["images"] = torch.from_numpy(self._images(g["images"][k]))
-            K = np.stack([rescale_K(Kc, self._img_src, (tc.image_width, tc.image_height)) for Kc in g["K"][k]])
+            imgs, K = self._images(jpeg_files(g["jpeg"][k], g["jpeg_nbytes"][k]), g["K"][k])
+            out["images"] = torch.from_numpy(imgs)
             out["K"] = torch.from_numpy(K.astype(np.float32))
             T = g["T_target_base"][k] @ g["T_base_cam"][k]
             out["T_target_cam"] = torch.from_numpy(T.astype(np.float32))

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from gtgen import codes
 from gtgen.config import GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from gtgen.grids import nearest_filled
@@ -188,11 +189,15 @@ def _run_folder(run_dir: Path, ckpt: Path, overwrite: bool) -> Iterator[None]:
 
 
 def _datasets(dataset: Path, tc: TrainConfig) -> tuple[ShardDataset, ShardDataset | None]:
-    """Return the train split (every sample if it is empty) and the val split (None if empty)."""
+    """Return the train split (every sample outside test if it is empty) and the val split
+    (None if empty). The test split (drives held out whole) is never trained on."""
     ds = ShardDataset(dataset, tc, split="train")
     if len(ds) == 0:
         ds = ShardDataset(dataset, tc, split=None)
-        log.warning("the train split is empty; training on every sample")
+        ds.indices = ds.indices[ds.store.meta("split")[ds.indices] != codes.TEST]
+        if len(ds) == 0:
+            raise TrainError(f"dataset '{dataset}' has only test samples (drives held out whole); nothing to train on")
+        log.warning("the train split is empty; training on every sample outside the test split")
     val = ShardDataset(dataset, tc, split="val") if tc.val_every else None
     if val is not None and tc.val_max_samples is not None and len(val) > tc.val_max_samples:
         val.indices = val.indices[np.linspace(0, len(val) - 1, tc.val_max_samples).round().astype(np.int64)]

@@ -1,5 +1,5 @@
-"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, and resize them; read
-the intrinsics of a sensor_msgs/CameraInfo."""
+"""Decode sensor_msgs/CompressedImage and Image into RGB arrays, resize them, encode and
+decode JPEG files; read the intrinsics and lens of a sensor_msgs/CameraInfo."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import DecodeError
+from gtgen.lens import Lens
 
 CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
 
@@ -38,6 +39,50 @@ def decode_image(msg: object, msgtype: str) -> NDArray[np.uint8]:
     return np.ascontiguousarray(arr[..., :3])
 
 
+def image_source(msg: object, msgtype: str, rgb: NDArray[np.uint8] | None = None) -> bytes | NDArray[np.uint8]:
+    """Return what an image message carries as it came: a CompressedImage's file bytes,
+    else its RGB (``rgb`` if decoded already): a raw Image has no file to keep."""
+    if msgtype.endswith("CompressedImage"):
+        return bytes(msg.data)  # type: ignore[attr-defined]
+    return decode_image(msg, msgtype) if rgb is None else rgb
+
+
+def is_jpeg(data: bytes) -> bool:
+    """Whether ``data`` is a JPEG file (starts with the SOI marker)."""
+    return data[:3] == b"\xff\xd8\xff"
+
+
+def file_size(data: bytes) -> tuple[int, int]:
+    """Return the (width, height) [px] an image file's header gives, without decoding it."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            return int(img.size[0]), int(img.size[1])
+    except Exception as err:  # noqa: BLE001 - PIL raises several types
+        raise DecodeError(f"image file of {len(data)} bytes does not open: {err}") from err
+
+
+def decode_file(data: bytes) -> NDArray[np.uint8]:
+    """Return the RGB uint8 image (H, W, 3) of an image file (JPEG, PNG)."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            return np.asarray(img.convert("RGB"))
+    except Exception as err:  # noqa: BLE001 - PIL raises several types
+        raise DecodeError(f"image file of {len(data)} bytes does not decode: {err}") from err
+
+
+def encode_jpeg(img: NDArray[np.uint8], quality: int) -> bytes:
+    """Return the JPEG file of RGB ``img`` (H, W, 3) at ``quality`` (1-100, 4:2:0 chroma)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(img)).save(buf, format="JPEG", quality=int(quality))
+    return buf.getvalue()
+
+
 def resize_image(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
     """Return ``img`` resized (bilinear) to width x height."""
     if img.shape[1] == width and img.shape[0] == height:
@@ -57,3 +102,9 @@ def intrinsics(info: object) -> tuple[NDArray[np.float64], tuple[int, int]]:
     if min(size) < 1 or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise DecodeError(f"CameraInfo of {size[0]} x {size[1]} px with focal lengths {K[0, 0]}, {K[1, 1]} is not a calibration")
     return K, size
+
+
+def lens(info: object) -> Lens:
+    """Return the lens (distortion model and D) of a CameraInfo (ROS 1 or 2 field names)."""
+    D = info.d if hasattr(info, "d") else info.D  # type: ignore[attr-defined]
+    return Lens.of(str(info.distortion_model), D)  # type: ignore[attr-defined]
