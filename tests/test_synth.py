@@ -293,3 +293,24 @@ def test_easy_world_stays_available_by_config():
     old = SynthWorld(easy.model_copy(update={"duration_s": 20}))
     assert len(paper.obstacles.bush_uv) > 0 == len(old.obstacles.bush_uv)
     assert len(paper.obstacles.rock_uv) > 2 * len(old.obstacles.rock_uv)
+
+
+def test_the_stacks_memory_keeps_what_it_saw_from_earlier_poses():
+    """Cells only the earlier poses saw (behind the bush from here, beside the track there)
+    are in the map with memory, none of them without."""
+    from gtgen.synth.sensors import lidar_view, xracer_map
+
+    sc, t, view = _density_setup()
+    U, V, now = _map(sc, t, view, 0.2, 6.0)
+    past = lidar_view(sc, t, np.array([20.0, 25.0, 240.0 + sc.lidar_height_m]))  # beside the shadow
+    with_memory = xracer_map(sc, t, view, (U, V), 0.0, np.random.default_rng(0), 0.2, 6.0, (past,))
+    behind = (U > 16) & (U < 30) & (np.abs(V) < 0.5)
+    assert not (now.confidence > 0.1)[behind].any() and (with_memory.confidence > 0.1)[behind].mean() > 0.5
+
+
+def test_region_shares_are_of_the_labelled_cells():
+    from gtgen.report.stats import PAPER_REGION_SHARE_PCT, region_shares
+
+    assert region_shares({"no_label": 0.5, "obs_pc": 0.1, "obs_f": 0.3, "unobs": 0.1}) == {"obs_pc": 20.0, "obs_f": 60.0, "unobs": 20.0}
+    assert region_shares({"no_label": 1.0, "obs_pc": 0.0, "obs_f": 0.0, "unobs": 0.0}) == {"obs_pc": None, "obs_f": None, "unobs": None}
+    assert all(abs(sum(p.values()) - 100) < 0.2 for p in PAPER_REGION_SHARE_PCT.values())

@@ -207,14 +207,19 @@ class _Ticker:
         return view
 
     def _memory(self, k: int, speed: float) -> tuple[sensors.LidarView, ...]:
-        """Return the views at the earlier poses of the stack's memory at tick ``k``: evenly
-        over its span, on map ticks (so that consecutive maps share them)."""
+        """Return the views at the earlier poses of the stack's memory at tick ``k``: at most
+        ``stack_memory_views - 1`` of them, on a fixed lattice of ticks that spreads that
+        many over ``stack_memory_s`` (so consecutive maps share them), within the memory's
+        span at ``speed``."""
         sc = self.cfg.synth
-        if sc.confidence_model != "density" or sc.stack_memory_views < 2:
+        n = sc.stack_memory_views - 1
+        if sc.confidence_model != "density" or n < 1:
             return ()
+        step = max(1, int(round(sc.stack_memory_s * sc.odom_rate_hz / (n + 1) / self.map_p))) * self.map_p  # [ticks]
         span = sensors.stack_memory_s(sc, speed) * sc.odom_rate_hz  # [ticks]
-        ks = {k - int(round(j * span / sc.stack_memory_views / self.map_p)) * self.map_p for j in range(1, sc.stack_memory_views)}
-        return tuple(self._view(j) for j in sorted(ks, reverse=True) if 0 <= j < k)
+        last = (k - 1) // step * step  # the lattice tick before k
+        ks = [last - i * step for i in range(n)]
+        return tuple(self._view(j) for j in ks if j >= 0 and k - j <= span)
 
     def tick(self, k: int) -> list:
         """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
