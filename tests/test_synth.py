@@ -302,7 +302,7 @@ def test_the_stacks_memory_keeps_what_it_saw_from_earlier_poses():
 
     sc, t, view = _density_setup()
     U, V, now = _map(sc, t, view, 0.2, 6.0)
-    past = lidar_view(sc, t, np.array([20.0, 25.0, 240.0 + sc.lidar_height_m]))  # beside the shadow
+    past = lidar_view(sc, t, np.array([23.0, 6.0, 240.0 + sc.lidar_height_m]))  # beside the shadow
     with_memory = xracer_map(sc, t, view, (U, V), 0.0, np.random.default_rng(0), 0.2, 6.0, (past,))
     behind = (U > 16) & (U < 30) & (np.abs(V) < 0.5)
     assert not (now.confidence > 0.1)[behind].any() and (with_memory.confidence > 0.1)[behind].mean() > 0.5

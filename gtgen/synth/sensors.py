@@ -139,7 +139,7 @@ def xracer_map(
     ``canopy`` the crown's top (as a real stack's elevation map does).
 
     With ``confidence_model: density`` a cell of edge ``cell_m`` is seen only where
-    returns land in it: their count is Poisson drawn with the mean of the views' densities
+    returns land in it (in its ``stack_voxel_m`` column when the cell is smaller): their count is Poisson drawn with the mean of the views' densities
     over the cell and the revolutions the map holds at ``speed_mps``, shared evenly by
     ``view`` and the ``memory`` views (the lidar at earlier poses of the stack's memory:
     its maps aggregate the returns over time); its confidence is
@@ -180,7 +180,8 @@ def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...
         raise ValueError("xracer_map: the density model needs views made with confidence_model 'density'")
     u, v = cell_world_uv
     ground, risk, surface = terrain.sample(u, v, ("ground", "risk", "surface")) if cfg.canopy else (*terrain.sample(u, v, ("ground", "risk")), None)
-    per_view = np.float32(cell_m * cell_m * stack_revolutions(cfg, speed_mps) / len(views))
+    area = max(cell_m, cfg.stack_voxel_m) ** 2  # the stack counts returns per voxel column at least
+    per_view = np.float32(area * stack_revolutions(cfg, speed_mps) / len(views))
     mean = np.zeros(u.shape, np.float32)
     seen_s = np.zeros(u.shape, bool)
     seen_g = np.zeros(u.shape, bool)
