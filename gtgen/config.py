@@ -131,6 +131,7 @@ class TopicsConfig(_Model):
 class SynthConfig(_Model):
     """The simulated drive (``gtgen synth``); every realism knob is here."""
 
+    world: Literal["paper", "easy"] = Field("paper", description="paper: the stack's maps confident where its lidar returns are dense (falling with range, shadowed behind crests and obstacles, thinner at speed), hillier, with more rocks, bushes and trees of several heights; easy: the old smooth world (confidence halving with range wherever a beam reaches, few rocks and trees), whose values it gives every key of EASY_WORLD a config layer does not set")
     seed: int = Field(0, ge=0, description="random seed; same seed, same bytes")
     duration_s: float = Field(60.0, gt=0, le=3600, description="drive duration [s]")
     formats: Literal["mcap", "bag", "both"] = Field("both", description="bag flavours written")
@@ -153,7 +154,17 @@ class SynthConfig(_Model):
     camera_hfov_deg: float = Field(100.0, gt=10, lt=170, description="horizontal field of view [deg]")
     lidar_height_m: float = Field(2.0, gt=0, description="lidar height above the base [m]")
     lidar_range_m: float = Field(90.0, gt=1, description="maximum lidar range [m]")
-    confidence_range_m: float = Field(35.0, gt=0, description="range where confidence halves [m]")
+    confidence_range_m: float = Field(28.0, gt=0, description="range where confidence halves [m]")
+    confidence_model: Literal["density", "range"] = Field("density", description="density: a map cell is seen when lidar returns land in it (expected returns from the beams' angular spacing over the visible surface, Poisson drawn), and its confidence grows with them and halves every confidence_range_m; range: every cell a beam reaches is seen, confidence halving with range, at least 0.12")
+    lidar_beams: int = Field(2, ge=1, le=1024, description="beams, evenly over lidar_vfov_deg, whose returns count for the stack's confidence (fewer than the sensors have: the paper's vehicle carries three 32-beam VLP-32C; the default puts the demo's region shares near the paper's Tab. I) (density model)")
+    lidar_vfov_deg: float = Field(40.0, gt=0, le=180, description="vertical field of view the beams span, from -25 deg up [deg] (density model)")
+    lidar_az_points: int = Field(1800, ge=8, le=100000, description="returns per beam per revolution (density model)")
+    lidar_rate_hz: float = Field(10.0, gt=0, description="lidar revolutions per second (density model)")
+    stack_memory_s: float = Field(6.0, gt=0, le=MAX_SPAN_S, description="the stack's maps hold the returns of the last this many seconds, of at most stack_memory_m of travel [s] (density model)")
+    stack_memory_m: float = Field(45.0, gt=0, description="travel the stack's maps hold the returns of, at most: at speed they hold fewer revolutions and are thinner [m] (density model)")
+    stack_memory_views: int = Field(3, ge=1, le=16, description="lidar poses the stack's memory is drawn from, the current one included, evenly over its span (density model)")
+    stack_voxel_m: float = Field(0.4, ge=0, description="the stack counts a map cell's returns over at least this column edge (its voxels) [m] (density model)")
+    stack_points_conf: float = Field(1.0, gt=0, description="returns in a cell that make it 63 % confident before the range factor (density model)")
     elevation_noise_m: float = Field(0.04, ge=0, description="elevation noise at 0 m range [m]")
     elevation_noise_per_m: float = Field(0.002, ge=0, description="noise growth with range [m/m]")
     drift_xy_per_m: float = Field(0.003, ge=0, description="odometry xy drift per metre driven")
@@ -166,13 +177,18 @@ class SynthConfig(_Model):
     dem_tile_m: int = Field(400, ge=50, description="DEM tile edge [m]")
     dem_margin_m: float = Field(150.0, ge=0, description="DEM coverage beyond the path [m]")
     dem_noise_m: float = Field(0.03, ge=0, description="DEM height noise [m]")
-    hill_amplitude_m: float = Field(6.0, ge=0, description="rolling hill amplitude [m]")
+    hill_amplitude_m: float = Field(8.0, ge=0, description="rolling hill amplitude [m]")
+    crest_amplitude_m: float = Field(0.5, ge=0, description="amplitude of short hills and crests (30-80 m wavelength) on top of the rolling hills [m]")
     valley_depth_m: float = Field(8.0, ge=0, description="valley depth [m]")
     ditch_depth_m: float = Field(0.35, ge=0, description="ditch / rut depth [m]")
-    trees_per_ha: float = Field(2.0, ge=0, description="tree density [1/ha]")
-    rocks_per_ha: float = Field(6.0, ge=0, description="rock density [1/ha]")
+    trees_per_ha: float = Field(6.0, ge=0, description="tree density [1/ha]")
+    tree_height_min_m: float = Field(3.0, gt=0, description="lowest tree [m]")
+    tree_height_max_m: float = Field(15.0, gt=0, description="tallest tree [m]")
+    rocks_per_ha: float = Field(20.0, ge=0, description="rock density [1/ha]")
     canopy: bool = Field(False, description="X-Racer maps show the top of tree crowns and bushes where the lidar hits them (the DEM stays bare earth)")
-    bushes_per_ha: float = Field(0.0, ge=0, description="bush density (0.5-1.5 m tall, 1-2.5 m radius) [1/ha]")
+    bushes_per_ha: float = Field(15.0, ge=0, description="bush density (1-2.5 m radius) [1/ha]")
+    bush_height_min_m: float = Field(0.4, gt=0, description="lowest bush [m]")
+    bush_height_max_m: float = Field(2.5, gt=0, description="tallest bush [m]")
     gnss_jumps: int = Field(0, ge=0, description="GNSS multipath events: the fixes jump by gnss_jump_m for gnss_jump_s")
     gnss_jump_m: float = Field(4.0, ge=0, description="size of a GNSS multipath jump [m]")
     gnss_jump_s: float = Field(5.0, gt=0, le=MAX_SPAN_S, description="duration of a GNSS multipath jump [s]")
@@ -192,13 +208,34 @@ class SynthConfig(_Model):
     workers: int = Field(2, ge=1, le=64, description="processes simulating in parallel (output does not depend on it)")
     circular_buffer_every: int = Field(3, ge=0, description="every n-th map has non-zero start indices (0 = never)")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _world(cls, data: Any) -> Any:
+        """``world: easy`` given with only some keys: the easy world's values for the rest."""
+        if isinstance(data, dict) and data.get("world") == "easy":
+            data = {**EASY_WORLD, **data}
+        return data
+
     @model_validator(mode="after")
     def _speeds(self) -> SynthConfig:
         if self.speed_max_mps < self.speed_min_mps:
             raise ValueError(
                 f"speed_max_mps={self.speed_max_mps} is below speed_min_mps={self.speed_min_mps}"
             )
+        for name in ("tree", "bush"):
+            lo, hi = getattr(self, f"{name}_height_min_m"), getattr(self, f"{name}_height_max_m")
+            if hi < lo:
+                raise ValueError(f"{name}_height_max_m={hi} is below {name}_height_min_m={lo}")
         return self
+
+
+# The easy world (gtgen before issue 29): what ``synth.world: easy`` sets where a config
+# layer does not. Its drives are the ones the paper world's defaults replaced.
+EASY_WORLD: dict[str, Any] = {
+    "confidence_model": "range", "confidence_range_m": 35.0, "hill_amplitude_m": 6.0, "crest_amplitude_m": 0.0,
+    "trees_per_ha": 2.0, "tree_height_min_m": 5.0, "tree_height_max_m": 12.0, "rocks_per_ha": 6.0,
+    "bushes_per_ha": 0.0, "bush_height_min_m": 0.5, "bush_height_max_m": 1.5,
+}
 
 
 class ExtractConfig(_Model):
@@ -402,6 +439,17 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _world_layer(layer: dict[str, Any]) -> dict[str, Any]:
+    """Return ``layer`` with the keys its ``synth.world`` implies where it does not set them
+    (the easy world's values, or the paper world's defaults), so a later layer's world
+    replaces an earlier one's."""
+    synth = layer.get("synth")
+    if not isinstance(synth, dict) or synth.get("world") not in ("easy", "paper"):
+        return layer
+    base = EASY_WORLD if synth["world"] == "easy" else {k: SynthConfig.model_fields[k].default for k in EASY_WORLD}
+    return {**layer, "synth": {**base, **synth}}
+
+
 def _format_validation(err: ValidationError) -> str:
     first = err.errors()[0]
     parts = tuple(str(p) for p in first["loc"])
@@ -477,7 +525,7 @@ def build_config(*layers: dict[str, Any]) -> GtgenConfig:
     """Return the defaults overridden by each partial mapping in ``layers``, in order."""
     merged: dict[str, Any] = GtgenConfig().model_dump(mode="json")
     for layer in layers:
-        merged = _deep_merge(merged, layer)
+        merged = _deep_merge(merged, _world_layer(layer))
     try:
         return GtgenConfig.model_validate(merged)
     except ValidationError as err:

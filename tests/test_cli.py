@@ -72,6 +72,7 @@ def test_dem_align_report_viz_through_the_cli(dataset, drive_store, tmp_path):
     assert p.returncode == 0, p.stderr
     assert "DEM alignment error" in p.stdout and (tmp_path / "rep" / "qa_overview.png").is_file()
     assert "None" not in p.stdout and "n/a %" not in p.stdout  # a missing value reads n/a, without a unit
+    assert "regions micro (% of labelled; paper Tab. I)" in p.stdout and "obs_f" in p.stdout and "(46.4%)" in p.stdout
     p = run_cli("viz", tmp_path / "ds.zarr", "--sample", "2", "-o", tmp_path / "s.png")
     assert p.returncode == 0 and (tmp_path / "s.png").stat().st_size > 10_000
     p = run_cli("viz", tmp_path / "ds.zarr", "--sample", "100000", "-o", tmp_path / "s.png")

@@ -232,3 +232,85 @@ def test_fast_sampling_and_marching_equal_their_oracles(drive_dir, cfg):
     w = world.odom.odom_to_world(k, np.stack([X, Y, np.zeros_like(X)], -1))
     np.testing.assert_allclose(cu, w[..., 0], atol=1e-9)
     np.testing.assert_allclose(cv, w[..., 1], atol=1e-9)
+
+
+def _density_setup(**over):
+    """A flat-ish world without obstacles but one bush, seen by the density model."""
+    from gtgen.config import SynthConfig
+    from gtgen.synth.sensors import lidar_view
+    from gtgen.synth.terrain import Obstacles, Terrain
+
+    sc = SynthConfig(seed=3, hill_amplitude_m=0.0, crest_amplitude_m=0.0, valley_depth_m=0.0, ditch_depth_m=0.0, **over)
+    none = np.zeros(0)
+    bush = Obstacles(np.zeros((0, 2)), none, none, np.zeros((0, 2)), none, none, none,
+                     bush_uv=np.array([[12.0, 0.0]]), bush_radius=np.array([1.5]), bush_height=np.array([2.5]))
+    t = Terrain(sc, bush)
+    origin = np.array([0.0, 0.0, 240.0 + sc.lidar_height_m])
+    return sc, t, lidar_view(sc, t, origin)
+
+
+def _map(sc, t, view, cell_m, speed, seed=0):
+    from gtgen.synth.sensors import xracer_map
+
+    c = np.arange(-60.0, 60.0, cell_m) + cell_m / 2
+    U, V = np.meshgrid(c, c, indexing="ij")
+    return U, V, xracer_map(sc, t, view, (U, V), 0.0, np.random.default_rng(seed), cell_m, speed)
+
+
+def test_paper_world_maps_are_confident_where_returns_are_dense():
+    sc, t, view = _density_setup()
+    U, V, m = _map(sc, t, view, 0.2, 6.0)
+    r = np.hypot(U, V)
+    conf = m.confidence > 0.1
+    near, mid, far = (r > 4) & (r < 15) & (U < 0), (r > 25) & (r < 35), (r > 45) & (r < 55)
+    assert conf[near].mean() > 0.9 > conf[mid].mean() > conf[far].mean()  # falls with range
+    assert conf[far].mean() < 0.3
+    # shadowed behind the bush (2.5 m tall, 12 m ahead): nothing confident 16-30 m behind it on its bearing
+    behind = (U > 16) & (U < 30) & (np.abs(V) < 0.5)
+    assert not conf[behind].any() and conf[(U < -16) & (U > -30) & (np.abs(V) < 0.5)].mean() > 0.3
+    # thinner at speed; coarser cells (more returns each) confident farther out
+    _, _, fast = _map(sc, t, view, 0.2, 12.0)
+    assert (fast.confidence > 0.1)[mid].mean() < conf[mid].mean()
+    _, _, coarse = _map(sc, t, view, 0.8, 6.0)
+    rc = np.hypot(*np.meshgrid(*(np.arange(-60.0, 60.0, 0.8) + 0.4,) * 2, indexing="ij"))
+    assert (coarse.confidence > 0.1)[(rc > 45) & (rc < 55)].mean() > 2 * conf[far].mean()
+    # where cells are seen, they are the ground within the noise
+    seen = conf & (r < 30) & (r > 3)
+    assert np.abs(m.elevation[seen] - 240.0).max() < 6 * (sc.elevation_noise_m + sc.elevation_noise_per_m * 30)
+
+
+def test_easy_world_stays_available_by_config():
+    from gtgen.config import EASY_WORLD, SynthConfig, build_config
+    from gtgen.synth.world import SynthWorld
+
+    easy = SynthConfig(world="easy", seed=2)
+    assert all(getattr(easy, k) == v for k, v in EASY_WORLD.items())
+    assert SynthConfig(world="easy", trees_per_ha=9).trees_per_ha == 9  # an explicit key wins
+    assert build_config({"synth": {"world": "easy"}}).synth.confidence_model == "range"
+    # a later layer's world replaces an earlier one's
+    assert build_config({"synth": {"world": "easy"}}, {"synth": {"world": "paper"}}).synth == SynthConfig()
+    paper = SynthWorld(SynthConfig(seed=2, duration_s=20))
+    old = SynthWorld(easy.model_copy(update={"duration_s": 20}))
+    assert len(paper.obstacles.bush_uv) > 0 == len(old.obstacles.bush_uv)
+    assert len(paper.obstacles.rock_uv) > 2 * len(old.obstacles.rock_uv)
+
+
+def test_the_stacks_memory_keeps_what_it_saw_from_earlier_poses():
+    """Cells only the earlier poses saw (behind the bush from here, beside the track there)
+    are in the map with memory, none of them without."""
+    from gtgen.synth.sensors import lidar_view, xracer_map
+
+    sc, t, view = _density_setup()
+    U, V, now = _map(sc, t, view, 0.2, 6.0)
+    past = lidar_view(sc, t, np.array([23.0, 6.0, 240.0 + sc.lidar_height_m]))  # beside the shadow
+    with_memory = xracer_map(sc, t, view, (U, V), 0.0, np.random.default_rng(0), 0.2, 6.0, (past,))
+    behind = (U > 16) & (U < 30) & (np.abs(V) < 0.5)
+    assert not (now.confidence > 0.1)[behind].any() and (with_memory.confidence > 0.1)[behind].mean() > 0.5
+
+
+def test_region_shares_are_of_the_labelled_cells():
+    from gtgen.report.stats import PAPER_REGION_SHARE_PCT, region_shares
+
+    assert region_shares({"no_label": 0.5, "obs_pc": 0.1, "obs_f": 0.3, "unobs": 0.1}) == {"obs_pc": 20.0, "obs_f": 60.0, "unobs": 20.0}
+    assert region_shares({"no_label": 1.0, "obs_pc": 0.0, "obs_f": 0.0, "unobs": 0.0}) == {"obs_pc": None, "obs_f": None, "unobs": None}
+    assert all(abs(sum(p.values()) - 100) < 0.2 for p in PAPER_REGION_SHARE_PCT.values())

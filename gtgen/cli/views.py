@@ -45,6 +45,9 @@ def report(
         rows.append(("images per sample (4 JPEG)", f"{c['image_bytes_per_sample'] / 1e3:.1f} kB"))
     for r, cov in c.get("coverage", {}).items():
         rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
+    for r, share in c.get("region_share_pct", {}).items():
+        paper = c["paper_region_share_pct"][r]
+        rows.append((f"regions {r} (% of labelled; paper Tab. I)", ", ".join(f"{k} {na(v, '%')} ({paper[k]}%)" for k, v in share.items())))
     if c.get("icp_fitness"):
         rows.append(("ICP fitness", ", ".join(f"{k} {v:.3f}" for k, v in c["icp_fitness"].items())))
     a = c.get("alignment", {})

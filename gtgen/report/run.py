@@ -13,7 +13,7 @@ from gtgen.errors import GtgenError
 from gtgen.report.figures import FIGURES, figures, signal_figure
 from gtgen.report.labels import LabelErrors
 from gtgen.report.rejections import rejection_truth
-from gtgen.report.stats import quantiles
+from gtgen.report.stats import PAPER_REGION_SHARE_PCT, quantiles, region_shares
 from gtgen.runtime.output import check_replace, write_json
 from gtgen.storage.dataset import DatasetStore
 
@@ -75,6 +75,9 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
         "icp_rmse_m": quantiles(ds.meta("icp_rmse_m")),
         "alignment": ds.info.drives[0].alignment if len(ds.info.drives) == 1 else {},
     }
+    if S:  # the regions' shares of the labelled cells [%], beside the paper's (Tab. I)
+        rep.card["region_share_pct"] = {r: region_shares(rep.card["coverage"][r]) for r in RANGES}
+        rep.card["paper_region_share_pct"] = PAPER_REGION_SHARE_PCT
     truths = {d: t for d, entry in enumerate(ds.info.drives) if (t := Truth.find([b.path for b in entry.bags])) is not None}
     cfg = ds.config
     if truths and S:

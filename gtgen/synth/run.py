@@ -186,6 +186,7 @@ class _Ticker:
         dt = 1.0 / sc.odom_rate_hz
         self.vel_odom = np.gradient(world.odom.p_odom, dt, axis=0)
         self.yaw_rate = np.gradient(np.unwrap(ro[:, 2]), dt)
+        self._views: dict[int, sensors.LidarView] = {}  # the last few lidar views, by tick
 
     def _msg(self, out: list, topic: str | None, msgtype: str, t_rec: int, build) -> None:
         if topic is None:  # a role the config leaves to gtgen.mapping (topics.map_<range>, voxel_map: null)
@@ -204,8 +205,28 @@ class _Ticker:
         return out
 
     def _view(self, k: int) -> sensors.LidarView:
-        origin = self.world.poses.pos[k] + np.array([0.0, 0.0, self.cfg.synth.lidar_height_m])
-        return sensors.lidar_view(self.cfg.synth, self.world.terrain, origin)
+        view = self._views.get(k)
+        if view is None:
+            origin = self.world.poses.pos[k] + np.array([0.0, 0.0, self.cfg.synth.lidar_height_m])
+            view = self._views[k] = sensors.lidar_view(self.cfg.synth, self.world.terrain, origin)
+            while len(self._views) > 2 * self.cfg.synth.stack_memory_views + 2:
+                del self._views[min(self._views)]
+        return view
+
+    def _memory(self, k: int, speed: float) -> tuple[sensors.LidarView, ...]:
+        """Return the views at the earlier poses of the stack's memory at tick ``k``: at most
+        ``stack_memory_views - 1`` of them, on a fixed lattice of ticks that spreads that
+        many over ``stack_memory_s`` (so consecutive maps share them), within the memory's
+        span at ``speed``."""
+        sc = self.cfg.synth
+        n = sc.stack_memory_views - 1
+        if sc.confidence_model != "density" or n < 1:
+            return ()
+        step = max(1, int(round(sc.stack_memory_s * sc.odom_rate_hz / (n + 1) / self.map_p))) * self.map_p  # [ticks]
+        span = sensors.stack_memory_s(sc, speed) * sc.odom_rate_hz  # [ticks]
+        last = (k - 1) // step * step  # the lattice tick before k
+        ks = [last - i * step for i in range(n)]
+        return tuple(self._view(j) for j in ks if j >= 0 and k - j <= span)
 
     def tick(self, k: int) -> list:
         """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
@@ -266,11 +287,13 @@ class _Ticker:
         z_off = float(odom.p_odom[k, 2] - world.poses.pos[k, 2])
         rng = np.random.default_rng([sc.seed, 10, k])
         names = tp.layers
+        speed = float(world.path.speed[world.pose_idx[k]])
+        memory = self._memory(k, speed)
         for rng_name in ("micro", "short"):
             grid = cfg.grids.get(rng_name)
             center = np.round(odom.p_odom[k, :2] / grid.resolution_m) * grid.resolution_m
             cells = sensors.map_cells_world(grid, center, odom, k)
-            layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng)
+            layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng, grid.resolution_m, speed, memory)
             start = (0, 0)
             if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:
                 start = tuple(int(x) for x in rng.integers(1, grid.size, 2))
@@ -284,10 +307,17 @@ class _Ticker:
         """The voxel map aggregates the last two lidar sweeps it was given, in odom."""
         tp, odom = self.cfg.topics, self.world.odom
         t = int(self.world.t_ns[k])
-        pts = [odom.world_to_odom(k, sensors.view_points(view))]
+        sc = self.cfg.synth
+        rng = np.random.default_rng([sc.seed, 17, k])  # thins the points by the returns (density model)
+
+        def points(j: int, v: sensors.LidarView) -> np.ndarray:
+            revs = sensors.stack_revolutions(sc, float(self.world.path.speed[self.world.pose_idx[j]]))
+            return odom.world_to_odom(j, sensors.view_points(v, rng, revs))
+
+        pts = [points(k, view)]
         if k >= self.vox_p:
             kp = k - self.vox_p
-            pts.append(odom.world_to_odom(kp, sensors.view_points(self._view(kp))))
+            pts.append(points(kp, self._view(kp)))
         allp = np.vstack(pts)
         inside = np.all(np.abs(allp[:, :2] - odom.p_odom[k, :2]) < VOXEL_HALF_M, axis=1)
         vx = sensors.voxelize(allp[inside], VOXEL_M)
@@ -386,6 +416,7 @@ def load_world(out: Path) -> SynthWorld:
 
     synth = json.loads(meta_path.read_text())["synth"]
     known = {k: v for k, v in synth.items() if k in SynthConfig.model_fields}
+    known.setdefault("world", "easy")  # a drive made before the paper world: the easy world's keys it lacks
     if len(known) < len(synth):  # a drive made by another gtgen: keys this one has no knob for
         log.info("synth truth '%s': ignoring keys %s", meta_path, sorted(set(synth) - set(known)))
     try:

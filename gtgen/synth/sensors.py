@@ -39,6 +39,7 @@ class LidarView:
     seen_surface: NDArray[np.bool_]  # the surface at the sample is hit by a beam
     seen_ground: NDArray[np.bool_]  # the ground itself is hit (not a crown)
     held_ground: NDArray[np.float32]  # last seen ground height along the ray (NaN before any)
+    density: NDArray[np.float32] | None = None  # expected returns per m2 per revolution (density model)
 
 
 def lidar_ranges(max_range_m: float) -> NDArray[np.float64]:
@@ -67,7 +68,25 @@ def lidar_view(cfg: SynthConfig, terrain: Terrain, origin: NDArray) -> LidarView
     idx = np.maximum.accumulate(idx, axis=1)
     held = np.take_along_axis(ground, np.maximum(idx, 0), axis=1)
     held = np.where(idx >= 0, held, np.nan).astype(np.float32)
-    return LidarView(origin, ranges, az, ground, surface, seen_surface, seen_ground, held)
+    density = return_density(cfg, ranges, ang_s, prior, seen_surface) if cfg.confidence_model == "density" else None
+    return LidarView(origin, ranges, az, ground, surface, seen_surface, seen_ground, held, density)
+
+
+def return_density(cfg: SynthConfig, ranges: NDArray, ang: NDArray, prior: NDArray, seen: NDArray) -> NDArray[np.float32]:
+    """Return the expected lidar returns per m2 per revolution at each polar sample.
+
+    A visible sample spans the elevation angles between the horizon of the nearer samples
+    (``prior``, tangents) and its own (``ang``); the beams, ``lidar_beams`` evenly over
+    ``lidar_vfov_deg``, that fall in that span land on it, each with ``lidar_az_points``
+    returns per revolution spread around its circle. So returns thin out as 1/r^3 on flat
+    ground, pile up on slopes facing the sensor and vanish behind crests and obstacles.
+    """
+    beam = np.deg2rad(cfg.lidar_vfov_deg) / cfg.lidar_beams
+    lo = np.maximum(prior, np.float32(MIN_ELEV_ANGLE))
+    span = np.arctan(ang) - np.arctan(np.minimum(lo, ang))  # [rad] of elevation the sample takes
+    step = np.diff(ranges, append=ranges[-1] + (ranges[-1] - ranges[-2] if len(ranges) > 1 else RANGE_STEP_M))
+    per_m2 = (span / beam) * (cfg.lidar_az_points / (2 * np.pi * ranges))[None, :] / step[None, :]
+    return np.where(seen, per_m2, 0.0).astype(np.float32)
 
 
 def polar_lookup(view: LidarView, u: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -92,6 +111,17 @@ class MapLayers:
     confidence: NDArray[np.float32]
 
 
+def stack_memory_s(cfg: SynthConfig, speed_mps: float) -> float:
+    """Return the time span [s] whose returns a map of the stack holds at ``speed_mps``: the
+    last ``stack_memory_s``, but of at most ``stack_memory_m`` of travel (thinner at speed)."""
+    return min(cfg.stack_memory_s, cfg.stack_memory_m / max(speed_mps, 1e-3))
+
+
+def stack_revolutions(cfg: SynthConfig, speed_mps: float) -> float:
+    """Return how many lidar revolutions a map of the stack holds at ``speed_mps``."""
+    return cfg.lidar_rate_hz * stack_memory_s(cfg, speed_mps)
+
+
 def xracer_map(
     cfg: SynthConfig,
     terrain: Terrain,
@@ -99,6 +129,9 @@ def xracer_map(
     cell_world_uv: tuple[NDArray, NDArray],
     z_world_to_map: float,
     rng: np.random.Generator,
+    cell_m: float = 0.2,
+    speed_mps: float = 0.0,
+    memory: tuple[LidarView, ...] = (),
 ) -> MapLayers:
     """Return the simulated X-Racer layers at cells whose world positions are given.
 
@@ -106,7 +139,18 @@ def xracer_map(
     z offset), so odometry z drift appears in the published map as on a real robot. Where
     the lidar hits a crown or a bush, the map holds the ground under it, or with
     ``canopy`` the crown's top (as a real stack's elevation map does).
+
+    With ``confidence_model: density`` a cell of edge ``cell_m`` is seen only where
+    returns land in it (in its ``stack_voxel_m`` column when the cell is smaller): their count is Poisson drawn with the mean of the views' densities
+    over the cell and the revolutions the map holds at ``speed_mps``, shared evenly by
+    ``view`` and the ``memory`` views (the lidar at earlier poses of the stack's memory:
+    its maps aggregate the returns over time); its confidence is
+    ``(1 - exp(-count / stack_points_conf)) * 0.5 ** (range / confidence_range_m)``, range
+    being the nearest a view that sees the cell came to it, its elevation noise falls as
+    1 / sqrt(count).
     """
+    if cfg.confidence_model == "density":
+        return _density_map(cfg, terrain, (view, *memory), cell_world_uv, z_world_to_map, rng, cell_m, speed_mps)
     u, v = cell_world_uv
     ground, risk, surface = terrain.sample(u, v, ("ground", "risk", "surface")) if cfg.canopy else (*terrain.sample(u, v, ("ground", "risk")), None)
     ai, ri, r = polar_lookup(view, u, v)
@@ -122,6 +166,51 @@ def xracer_map(
     conf = np.exp2(r * np.float32(-1.0 / cfg.confidence_range_m))  # 0.5 ** (r / confidence_range_m)
     conf = np.clip(conf * (1 + np.float32(0.05) * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
     conf = np.where(seen_s, np.maximum(conf, np.float32(0.12)), np.float32(0.0))
+    risk_obs = np.clip(risk + np.float32(0.03) * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
+    nan = np.isnan(elev)
+    return MapLayers(
+        elevation=(elev + np.float32(z_world_to_map)).astype(np.float32, copy=False),
+        risk=np.where(nan, np.float32(np.nan), np.where(seen_s, risk_obs, np.float32(0.0))).astype(np.float32, copy=False),
+        confidence=np.where(nan, np.float32(0.0), conf).astype(np.float32, copy=False),
+    )
+
+
+def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...], cell_world_uv: tuple[NDArray, NDArray],
+                 z_world_to_map: float, rng: np.random.Generator, cell_m: float, speed_mps: float) -> MapLayers:
+    """``xracer_map`` with confidence from the returns in each cell (the paper world)."""
+    if any(w.density is None for w in views):
+        raise ValueError("xracer_map: the density model needs views made with confidence_model 'density'")
+    u, v = cell_world_uv
+    ground, risk, surface = terrain.sample(u, v, ("ground", "risk", "surface")) if cfg.canopy else (*terrain.sample(u, v, ("ground", "risk")), None)
+    area = max(cell_m, cfg.stack_voxel_m) ** 2  # the stack counts returns per voxel column at least
+    per_view = np.float32(area * stack_revolutions(cfg, speed_mps) / len(views))
+    mean = np.zeros(u.shape, np.float32)
+    seen_s = np.zeros(u.shape, bool)
+    seen_g = np.zeros(u.shape, bool)
+    r = np.full(u.shape, np.inf, np.float32)
+    for j, view in enumerate(views):
+        ai, ri, rj = polar_lookup(view, u, v)
+        ok = ri >= 0
+        flat = ai * len(view.ranges) + np.maximum(ri, 0)
+        dens = np.where(ok, view.density.ravel().take(flat), np.float32(0.0))
+        mean += dens * per_view
+        seen_s |= ok & view.seen_surface.ravel().take(flat)
+        seen_g |= ok & view.seen_ground.ravel().take(flat)
+        r = np.where(dens > 0, np.minimum(r, rj), r)
+        if j == 0:
+            held = np.where(ok, view.held_ground.ravel().take(flat), np.float32(np.nan))
+            r0 = rj
+    r = np.where(np.isfinite(r), r, r0).astype(np.float32)
+    count = rng.poisson(mean).astype(np.float32)
+    hit = count > 0
+    seen_s &= hit
+    seen_g &= hit
+    noise_sd = (np.float32(cfg.elevation_noise_m) + np.float32(cfg.elevation_noise_per_m) * r) / np.sqrt(np.maximum(count, 1))
+    seen = ground if surface is None else np.where(seen_s & ~seen_g, surface, ground)
+    elev = np.where(seen_g | seen_s, seen + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
+    conf = (1 - np.exp(-count / np.float32(cfg.stack_points_conf))) * np.exp2(r * np.float32(-1.0 / cfg.confidence_range_m))
+    conf = np.clip(conf * (1 + np.float32(0.05) * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
+    conf = np.where(seen_s, conf, np.float32(0.0))
     risk_obs = np.clip(risk + np.float32(0.03) * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
     nan = np.isnan(elev)
     return MapLayers(
@@ -155,9 +244,17 @@ def voxelize(points: NDArray, voxel_m: float) -> NDArray[np.float32]:
     return ((keys + 0.5) * voxel_m).astype(np.float32)
 
 
-def view_points(view: LidarView) -> NDArray[np.float64]:
-    """Return the world points (N, 3) the lidar hit in ``view``."""
-    a, k = np.nonzero(view.seen_surface)
+def view_points(view: LidarView, rng: np.random.Generator | None = None, revolutions: float = 1.0) -> NDArray[np.float64]:
+    """Return the world points (N, 3) the lidar hit in ``view``: every visible sample, or
+    with ``rng`` and a view with densities, those that returns of ``revolutions`` land on
+    (each with the probability that at least one does)."""
+    seen = view.seen_surface
+    if rng is not None and view.density is not None:
+        step = np.diff(view.ranges, append=view.ranges[-1] + (view.ranges[-1] - view.ranges[-2]))
+        area = view.ranges * step * (2 * np.pi / len(view.az))  # [m2] of a polar sample
+        p_hit = -np.expm1(-view.density * (area * revolutions)[None, :])
+        seen = seen & (rng.random(seen.shape, dtype=np.float32) < p_hit)
+    a, k = np.nonzero(seen)
     r = view.ranges[k]
     return np.column_stack([view.origin[0] + np.cos(view.az[a]) * r, view.origin[1] + np.sin(view.az[a]) * r, view.surface[a, k]])
 

@@ -102,14 +102,14 @@ def place_obstacles(cfg: SynthConfig, bounds: tuple[float, float, float, float],
     nb = len(bush_uv)
     brng = np.random.default_rng([cfg.seed, 7])
     return Obstacles(
-        bush_uv=bush_uv, bush_radius=brng.uniform(1.0, 2.5, nb), bush_height=brng.uniform(0.5, 1.5, nb),
+        bush_uv=bush_uv, bush_radius=brng.uniform(1.0, 2.5, nb), bush_height=brng.uniform(cfg.bush_height_min_m, cfg.bush_height_max_m, nb),
         rock_uv=rock_uv,
         rock_radius=rng.uniform(0.3, 0.9, nr),
         rock_height=rng.uniform(0.3, 0.8, nr),
         tree_uv=np.vstack([tree_uv, near]),
         trunk_radius=np.concatenate([rng.uniform(0.15, 0.35, nt), rng.uniform(0.3, 0.4, npl)]),
         canopy_radius=np.concatenate([rng.uniform(1.5, 3.5, nt), rng.uniform(2.5, 3.5, npl)]),
-        tree_height=np.concatenate([rng.uniform(5.0, 12.0, nt), rng.uniform(7.0, 10.0, npl)]),
+        tree_height=np.concatenate([rng.uniform(cfg.tree_height_min_m, cfg.tree_height_max_m, nt), rng.uniform(7.0, 10.0, npl)]),
     )
 
 
@@ -150,6 +150,15 @@ class Terrain:
         ang = rng.uniform(0, np.pi, k)
         self._wave_k = np.column_stack([np.cos(ang), np.sin(ang)]) * (2 * np.pi / lam)[:, None]
         self._wave_phase = rng.uniform(0, 2 * np.pi, k)
+        if cfg.crest_amplitude_m > 0:  # short hills and crests, their own stream (the easy world has none)
+            crng = np.random.default_rng([cfg.seed, 16])
+            kc = 8
+            amp = cfg.crest_amplitude_m * crng.uniform(0.4, 1.0, kc) / np.sqrt(kc / 2)
+            ang_c = crng.uniform(0, np.pi, kc)
+            lam_c = crng.uniform(30.0, 80.0, kc)
+            self._wave_amp = np.concatenate([self._wave_amp, amp])
+            self._wave_k = np.vstack([self._wave_k, np.column_stack([np.cos(ang_c), np.sin(ang_c)]) * (2 * np.pi / lam_c)[:, None]])
+            self._wave_phase = np.concatenate([self._wave_phase, crng.uniform(0, 2 * np.pi, kc)])
         va = rng.uniform(0, np.pi)
         self._valley_dir = np.array([np.cos(va), np.sin(va)])
         self._valley_pt = rng.uniform(-80, 80, 2)

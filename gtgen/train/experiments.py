@@ -23,6 +23,7 @@ import yaml
 from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig, load_config, read_yaml
 from gtgen.errors import ConfigError, TrainError
+from gtgen.report.stats import PAPER_REGION_SHARE_PCT
 from gtgen.runtime.output import lock, signature, write_atomic, write_json
 from gtgen.storage.dataset import DatasetStore
 from gtgen.train.checkpoint import load_checkpoint
@@ -126,10 +127,10 @@ def _per_range(stem: str) -> tuple[str, ...]:
 
 # the paper's numbers (Tab. I-IV); Tab. I's share row is each region's share of the labelled cells [%]
 _TAB1 = {
-    "micro": {"share": (33.3, 46.4, 20.3, None), "lss": (0.819, 1.01, 2.093, 1.167), "pp": (0.41, 0.545, 1.208, 0.635),
+    "micro": {"share": (*PAPER_REGION_SHARE_PCT["micro"].values(), None), "lss": (0.819, 1.01, 2.093, 1.167), "pp": (0.41, 0.545, 1.208, 0.635),
               "xracer": (0.217, 0.307, 0.747, None), "xracer_cov": (None, 74.0, 45.0, None), "rr": (0.399, 0.592, 1.629, 0.738),
               "womr": (0.241, 0.422, 1.261, 0.532), "ours": (0.215, 0.318, 0.869, 0.396)},
-    "short": {"share": (18.5, 34.8, 46.7, None), "lss": (1.489, 1.948, 3.606, 2.638), "pp": (0.732, 0.868, 1.992, 1.368),
+    "short": {"share": (*PAPER_REGION_SHARE_PCT["short"].values(), None), "lss": (1.489, 1.948, 3.606, 2.638), "pp": (0.732, 0.868, 1.992, 1.368),
               "xracer": (0.225, 0.642, 2.421, None), "xracer_cov": (None, 90.0, 83.0, None), "rr": (0.418, 0.852, 2.311, 1.453),
               "womr": (0.276, 0.627, 1.835, 1.126), "ours": (0.288, 0.65, 1.874, 1.155)},
 }
