@@ -204,6 +204,9 @@ class FuseConfig(_Model):
     risk_min_conf: float = Field(0.5, ge=0, le=1, description="risk used where confidence >= this")
     tile_cells: int = Field(128, ge=8, le=4096, description="accumulator tile edge [cells]")
     chunk_samples: int = Field(128, ge=1, description="samples per parallel fusion job (exact: labels do not depend on it)")
+    elevation_rule: Literal["mean", "ground"] = Field("mean", description="elevation over the window: 'mean' of the confident observations (the paper's), or 'ground': the mean of those not in a map's top layer (crowns, bushes: standing more than top_height_m above the map's opening by a top_footprint_m square), all of them where every one is")
+    top_height_m: float = Field(0.5, gt=0, description="rule 'ground': a map cell this far above the map's opened surface is top layer [m]")
+    top_footprint_m: float = Field(8.0, gt=0, description="rule 'ground': edge of the square the map's surface is opened by; wider than the widest crown [m]")
 
 
 class DemConfig(_Model):

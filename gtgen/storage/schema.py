@@ -91,10 +91,10 @@ _FUSED: list[ArraySpec] = [
 for _r in RANGES:
     _f = "vehicle frame at t"
     _FUSED += [
-        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "mean elevation of confident observations in the window"),
+        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "elevation of the confident observations in the window: their mean (fuse.elevation_rule mean), or the mean of those off the maps' top layer (rule ground)"),
         ArraySpec(f"fused/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "max confidence in the window"),
         ArraySpec(f"fused/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "latest risk with confidence >= risk_min_conf"),
-        ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation"),
+        ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
         ArraySpec(f"fused/{_r}/last_dt_s", "float32", "(S, n, n)", "s, rel. t", _f, "NaN", "stamp of the last observation minus t"),
         ArraySpec(f"fused/{_r}/region", "uint8", "(S, n, n)", "code", _f, "0", "1 observed past/current, 2 observed future, 3 unobserved"),
         ArraySpec(f"xracer/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "X-Racer map at t (latest stamped <= t), resampled"),
@@ -118,7 +118,7 @@ for _r in RANGES:
         ArraySpec(f"labels/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "latest confident X-Racer risk in the window"),
         ArraySpec(f"labels/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "max X-Racer confidence in the window"),
         ArraySpec(f"labels/{_r}/region", "uint8", f"(S, {_n}, {_n})", "code", _TGT, "0", "0 no label, 1 observed past/current, 2 observed future, 3 unobserved (DEM)"),
-        ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation"),
+        ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
         ArraySpec(f"labels/{_r}/last_dt_s", "float32", f"(S, {_n}, {_n})", "s, rel. t", _TGT, "NaN", "time of the last observation minus t"),
         ArraySpec(f"xracer/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "X-Racer map at t (the baseline row)"),
         ArraySpec(f"xracer/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer risk at t"),
