@@ -234,6 +234,11 @@ class DemConfig(_Model):
     carry_over_m: float = Field(20.0, ge=0, description="a sample mostly over set-aside tiles is kept at the last kept placement carried by odometry (not refined by ICP, not filled from those tiles) while that placement is at most this far back; farther, or 0, it is rejected as suspect_tile [m]")
     max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree (a shifted tile, another place, a stale survey)")
     min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before it is judged")
+    tile_offset_min_m: float = Field(0.5, ge=0, description="a tile is put back horizontally when its measured offset exceeds this and twice its uncertainty [m]")
+    tile_offset_min_z_m: float = Field(0.1, ge=0, description="a tile is put back vertically when its measured offset exceeds this and twice its uncertainty [m]")
+    tile_offset_spread_m: float = Field(1.0, gt=0, description="a tile whose fits scatter more than this horizontally (1.4826 MAD) has no consistent offset: set aside [m]")
+    tile_offset_spread_z_m: float = Field(0.3, gt=0, description="a tile whose fits scatter more than this vertically (1.4826 MAD) has no consistent offset: set aside [m]")
+    max_tile_offset_m: float = Field(10.0, gt=0, description="a tile measured farther off than this horizontally is set aside rather than put back [m]")
 
 
 class ReportConfig(_Model):

@@ -186,6 +186,22 @@ class BagRef(BaseModel):
     sha256: str
 
 
+class TileEntry(BaseModel):
+    """What dem-align measured of one DEM tile of a drive (``gtgen.dem.place.TileJudgement``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    path: str = Field(description="the tile (GDAL path)")
+    status: str = Field(description="ok (used as it is), corrected (read put back by applied_m), set_aside (not used: no consistent offset, "
+                                    "another place), unjudged (fewer than 3 fits: used as it is)")
+    fits: int = Field(description="samples whose observed ground was fitted to the tile alone")
+    offset_m: list[float | None] = Field(description="measured (dx, dy, dz) [m, working CRS]: the tile shows at (E + dx, N + dy) the ground of "
+                                                     "(E, N), dz higher; median over the fits (null: not measured)")
+    sigma_m: list[float | None] = Field(description="1-sigma uncertainty of offset_m per axis [m]: the larger of the fits' conditioning "
+                                                    "(large horizontally on smooth ground) and their spread")
+    applied_m: list[float] = Field(description="the offset the tile is read put back by [m] (zeros unless corrected; an axis whose offset "
+                                               "is within its uncertainty or dem.tile_offset_min_m / _z_m stays 0)")
+
+
 class DriveEntry(BaseModel):
     """One drive of a dataset: where it came from and how it was placed in the DEM's CRS."""
 
@@ -196,6 +212,7 @@ class DriveEntry(BaseModel):
     crs: str = Field(description="working CRS of the drive's DEM placement (meta/T_crs_target, meta/crs_en_m)")
     alignment: dict[str, float | int] = Field(description="GNSS fit and vertical offset of the drive")
     suspect_tiles: list[str] = Field(default_factory=list, description="DEM tiles judged wrong against the drive's observations: not used for filling")
+    tiles: list[TileEntry] = Field(default_factory=list, description="every DEM tile the drive measured or judged: offset, uncertainty, status")
 
 
 class DatasetAttrs(BaseModel):
