@@ -239,6 +239,7 @@ class DemConfig(_Model):
     tile_offset_spread_m: float = Field(1.0, gt=0, description="a tile whose fits scatter more than this horizontally (1.4826 MAD) has no consistent offset: set aside [m]")
     tile_offset_spread_z_m: float = Field(0.3, gt=0, description="a tile whose fits scatter more than this vertically (1.4826 MAD) has no consistent offset: set aside [m]")
     max_tile_offset_m: float = Field(10.0, gt=0, description="a tile measured farther off than this horizontally is set aside rather than put back [m]")
+    max_border_step_m: float = Field(0.15, gt=0, description="a tile (put back or not) whose heights step by more than this (median) across its borders with its neighbours is set aside: another place [m]")
 
 
 class ReportConfig(_Model):

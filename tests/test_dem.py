@@ -199,8 +199,8 @@ def _altered_dem(src, dst, shifted, dxyz, wrong):
 
 def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dataset, drive_dir, drive_store, fused_store, cfg, tmp_path):
     """The drive crosses four tiles: one moved by a known (dx, dy, dz) is measured within
-    0.5 m / 0.1 m and read put back (its samples kept and filled from it, as well as on the
-    clean DEM), one holding another place's terrain is still set aside."""
+    0.5 m / 0.1 m and read put back (its samples kept and filled from it), one holding
+    another place's terrain is still set aside."""
     tiles = {Path(t.path).name: t for t in DatasetStore(dataset).info.drives[0].tiles}
     fitted = sorted((t.fits, n) for n, t in tiles.items() if t.status == "ok")
     assert len(fitted) >= 3, tiles
@@ -217,4 +217,4 @@ def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dat
     w = next(t for n, t in got.items() if wrong in n)
     assert w.status == "set_aside", w
     assert any(wrong in p for p in DatasetStore(tmp_path / "ds.zarr").info.drives[0].suspect_tiles)
-    assert res.n_kept >= 0.8 * DatasetStore(dataset).n_samples, res.rejected
+    assert set(res.rejected) <= {"suspect_tile"}, res.rejected  # samples mostly on the foreign tile, beyond carry_over_m

@@ -161,7 +161,8 @@ def _tile_entry(t) -> TileEntry:
         return [round(float(x), 4) if np.isfinite(x) else None for x in a]
 
     return TileEntry(path=t.name, status=t.status, fits=t.fits, offset_m=vals(t.offset), sigma_m=vals(t.sigma),
-                     applied_m=[round(float(x), 4) for x in t.applied])
+                     applied_m=[round(float(x), 4) for x in t.applied],
+                     border_step_m=round(float(t.border_step), 4) if np.isfinite(t.border_step) else None)
 
 
 def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], image_size: tuple[int, int], cameras: list[str],

@@ -30,6 +30,7 @@ COARSE = 3.0  # correspondence distance of the first pass from a drifted prior, 
 MIN_TILE_FIT_CELLS = 400  # observed ground cells of a sample on a tile before the tile is fitted alone (short: 256 m^2)
 MIN_TILE_FITS = 3  # fits of a tile before its offset is trusted
 TILE_FIT_ITERATIONS = 3  # times dem.icp_iterations
+MIN_BORDER_PIXELS = 50  # border pixels with a neighbour before the border step is judged
 SIGMA_FLOOR_M = 0.02  # the least uncertainty a tile fit claims per axis [m]
 
 
@@ -109,7 +110,7 @@ class TileJudgement:
     few fits), how many fits measured it, and its measured offset (dx, dy, dz) [m, working
     CRS: where the tile's content lies against the ground], the offset's uncertainty (1
     sigma per axis: the larger of the fits' conditioning and their spread) and the fits'
-    robust spread."""
+    robust spread, and the height step across its borders with neighbours as read."""
 
     index: int
     name: str
@@ -119,6 +120,7 @@ class TileJudgement:
     sigma: NDArray = field(default_factory=lambda: np.full(3, np.nan))
     spread: NDArray = field(default_factory=lambda: np.full(3, np.nan))
     applied: NDArray = field(default_factory=lambda: np.zeros(3))
+    border_step: float = float("nan")  # median height step across its borders with neighbours, as read [m]
 
     @property
     def put_back(self) -> TileOffset | None:
@@ -365,7 +367,13 @@ class DrivePlacement:
             h = np.hypot(*total[:2]) > max(dc.tile_offset_min_m, 2 * np.hypot(*sig[:2]))
             v = abs(total[2]) > max(dc.tile_offset_min_z_m, 2 * sig[2])
             applied = np.array([total[0] if h else 0.0, total[1] if h else 0.0, total[2] if v else 0.0])
-            out[i] = TileJudgement(i, name, "corrected" if (h or v) else "ok", fits, total, sig, spread, applied)
+            # put back (or as it is), a tile must continue its neighbours' terrain: a tile of
+            # another place may still fit the observed ground with some spurious offset
+            step, n_border = self.dem.border_step(i, TileOffset(*map(float, applied)) if (h or v) else None)
+            if n_border >= MIN_BORDER_PIXELS and step > dc.max_border_step_m:
+                out[i] = TileJudgement(i, name, "set_aside", fits, total, sig, spread, border_step=step)
+                continue
+            out[i] = TileJudgement(i, name, "corrected" if (h or v) else "ok", fits, total, sig, spread, applied, step)
         return [out[i] for i in range(len(self.dem.tile_names))]
 
     def _on_set_aside(self, T: NDArray, mask: NDArray) -> float:

@@ -392,6 +392,41 @@ class DemMosaic:
         out[out < -1e4] = np.nan  # nodata spelled as a huge negative number without a nodata tag
         return out, (float(x0), float(y0), float(res))
 
+    def border_step(self, i: int, offset: TileOffset | None) -> tuple[float, int]:
+        """Return the height step [m] across tile ``i``'s borders with its neighbours when it
+        is read put back by ``offset`` (None: as its file says), and how many border pixels
+        had a neighbour: per pixel the jump from the tile's edge pixel to the neighbour's,
+        less the mean slope of the two sides; the median per side, the least over the sides
+        with a neighbour along a quarter of them. A tile where it belongs continues its
+        neighbours' terrain (steps of the DEM's noise) on every side, even beside a tile of
+        another place; a shifted or foreign one on none."""
+        offsets = dict(self.offsets)
+        offsets.pop(i, None)
+        if offset is not None:
+            offsets[i] = offset
+        alone = DemMosaic(self.index, self.crs, frozenset(range(len(self.index.tiles))) - {i}, offsets)
+        others = DemMosaic(self.index, self.crs, self.exclude | {i}, offsets)
+        try:
+            l, b, r, t = alone._bounds[i]
+            res = self.res
+            steps = []
+            for (x0, y0, x1, y1), (nx, ny) in (((l, b, l, t), (-1, 0)), ((r, b, r, t), (1, 0)), ((l, b, r, b), (0, -1)), ((l, t, r, t), (0, 1))):
+                n = max(int(np.hypot(x1 - x0, y1 - y0) / res), 1)
+                u = (np.arange(n) + 0.5) / n
+                E, N = x0 + u * (x1 - x0), y0 + u * (y1 - y0)
+                box = (min(x0, x1) - 3 * res, min(y0, y1) - 3 * res, max(x0, x1) + 3 * res, max(y0, y1) + 3 * res)
+                ga, oa = alone.read(*box)
+                go, oo = others.read(*box)
+                hi1, hi2 = (_nearest(ga, oa, E - nx * d * res, N - ny * d * res) for d in (0.5, 1.5))
+                ho1, ho2 = (_nearest(go, oo, E + nx * d * res, N + ny * d * res) for d in (0.5, 1.5))
+                st = (ho1 - hi1) - 0.5 * ((hi1 - hi2) + (ho2 - ho1))
+                steps.append((np.abs(st[np.isfinite(st)]), n))
+            sides = [float(np.median(a)) for a, n in steps if len(a) >= max(n // 4, 1)]
+            return (min(sides) if sides else float("nan")), int(sum(len(a) for a, n in steps if len(a) >= max(n // 4, 1)))
+        finally:
+            alone.close()
+            others.close()
+
     def _read_put_back(self, i: int, box: tuple[float, float, float, float], h: int, w: int) -> NDArray[np.float32]:
         """Return tile ``i`` put back on the (h, w) pixels of ``box``: its content at the
         pixel centres moved by the offset, bilinear, less dz (NaN off the tile)."""
@@ -412,6 +447,14 @@ class DemMosaic:
 def _put_back_box(box: tuple[float, float, float, float], o: TileOffset, res: float) -> tuple[float, float, float, float]:
     """Return ``box`` moved by the offset and grown by two pixels (what a put-back read needs)."""
     return box[0] + o.dx - 2 * res, box[1] + o.dy - 2 * res, box[2] + o.dx + 2 * res, box[3] + o.dy + 2 * res
+
+
+def _nearest(grid: NDArray[np.float32], origin: tuple[float, float, float], E: NDArray, N: NDArray) -> NDArray[np.float32]:
+    """Return the pixel of ``grid`` (as ``sample_bilinear`` lays it out) under each point; NaN outside."""
+    x0, y0, res = origin
+    col, row = np.floor((E - x0) / res).astype(np.int64), np.floor((y0 - N) / res).astype(np.int64)
+    ok = (row >= 0) & (row < grid.shape[0]) & (col >= 0) & (col < grid.shape[1])
+    return np.where(ok, grid[np.where(ok, row, 0), np.where(ok, col, 0)], np.float32(np.nan))
 
 
 def sample_bilinear(grid: NDArray[np.float32], origin: tuple[float, float, float], E: NDArray, N: NDArray) -> NDArray[np.float32]:

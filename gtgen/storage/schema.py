@@ -198,6 +198,8 @@ class TileEntry(BaseModel):
                                                      "(E, N), dz higher; median over the fits (null: not measured)")
     sigma_m: list[float | None] = Field(description="1-sigma uncertainty of offset_m per axis [m]: the larger of the fits' conditioning "
                                                     "(large horizontally on smooth ground) and their spread")
+    border_step_m: float | None = Field(None, description="median height step across the tile's borders with its neighbours as read "
+                                                          "(put back if corrected) [m]; above dem.max_border_step_m it is set aside")
     applied_m: list[float] = Field(description="the offset the tile is read put back by [m] (zeros unless corrected; an axis whose offset "
                                                "is within its uncertainty or dem.tile_offset_min_m / _z_m stays 0)")
 
