@@ -264,6 +264,9 @@ class FuseConfig(_Model):
     risk_min_conf: float = Field(0.5, ge=0, le=1, description="risk used where confidence >= this")
     tile_cells: int = Field(128, ge=8, le=4096, description="accumulator tile edge [cells]")
     chunk_samples: int = Field(128, ge=1, description="samples per parallel fusion job (exact: labels do not depend on it)")
+    elevation_rule: Literal["mean", "ground"] = Field("mean", description="elevation over the window: 'mean' of the confident observations (the paper's), or 'ground': the mean of those not in a map's top layer (crowns, bushes: standing more than top_height_m above the map's opening by a top_footprint_m square), all of them where every one is")
+    top_height_m: float = Field(0.5, gt=0, description="rule 'ground': a map cell this far above the map's opened surface is top layer [m]")
+    top_footprint_m: float = Field(8.0, gt=0, description="rule 'ground': edge of the square the map's surface is opened by; wider than the widest crown [m]")
 
 
 class DemConfig(_Model):
@@ -291,6 +294,12 @@ class DemConfig(_Model):
     carry_over_m: float = Field(20.0, ge=0, description="a sample mostly over set-aside tiles is kept at the last kept placement carried by odometry (not refined by ICP, not filled from those tiles) while that placement is at most this far back; farther, or 0, it is rejected as suspect_tile [m]")
     max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree (a shifted tile, another place, a stale survey)")
     min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before it is judged")
+    tile_offset_min_m: float = Field(0.5, ge=0, description="a tile is put back horizontally when its measured offset exceeds this and twice its uncertainty [m]")
+    tile_offset_min_z_m: float = Field(0.1, ge=0, description="a tile is put back vertically when its measured offset exceeds this and twice its uncertainty [m]")
+    tile_offset_spread_m: float = Field(1.0, gt=0, description="a tile whose fits scatter more than this horizontally (1.4826 MAD) has no consistent offset: set aside [m]")
+    tile_offset_spread_z_m: float = Field(0.3, gt=0, description="a tile whose fits scatter more than this vertically (1.4826 MAD) has no consistent offset: set aside [m]")
+    max_tile_offset_m: float = Field(10.0, gt=0, description="a tile measured farther off than this horizontally is set aside rather than put back [m]")
+    max_border_step_m: float = Field(0.15, gt=0, description="a tile (put back or not) whose heights step by more than this (median) across its borders with its neighbours is set aside: another place [m]")
 
 
 class ReportConfig(_Model):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -178,3 +179,42 @@ def test_icp_recovers_a_known_placement_whatever_the_source_order(seed):
     np.testing.assert_allclose(again.T, res.T, atol=1e-9)
     assert (again.fitness, again.iterations) == (res.fitness, res.iterations)
     np.testing.assert_allclose(again.rmse_m, res.rmse_m, rtol=1e-9)
+
+
+def _altered_dem(src, dst, shifted, dxyz, wrong):
+    """Copy the DEM tiles of ``src`` to ``dst``: tile ``shifted`` (name part) moved by
+    (dx, dy) and raised by dz, tile ``wrong`` holding the terrain from 60 m away."""
+    dst.mkdir()
+    for p in src.glob("*.tif"):
+        with rasterio.open(p) as ds:
+            prof, data, t = ds.profile, ds.read(1), ds.transform
+        if shifted in p.name:
+            prof["transform"] = rasterio.Affine(t.a, 0, t.c + dxyz[0], 0, t.e, t.f + dxyz[1])
+            data = data + np.float32(dxyz[2])
+        if wrong in p.name:
+            data = np.roll(data, (60, 60), axis=(0, 1))
+        with rasterio.open(dst / p.name, "w", **prof) as out:
+            out.write(data, 1)
+
+
+def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dataset, drive_dir, drive_store, fused_store, cfg, tmp_path):
+    """The drive crosses four tiles: one moved by a known (dx, dy, dz) is measured within
+    0.5 m / 0.1 m and read put back (its samples kept and filled from it), one holding
+    another place's terrain is still set aside."""
+    tiles = {Path(t.path).name: t for t in DatasetStore(dataset).info.drives[0].tiles}
+    fitted = sorted((t.fits, n) for n, t in tiles.items() if t.status == "ok")
+    assert len(fitted) >= 3, tiles
+    # the x..y.. part of the names: shifted, the second most fitted tile; wrong, the least
+    shifted, wrong = fitted[-2][1].split("_")[3], fitted[0][1].split("_")[3]
+    dxyz = (2.0, -1.0, 0.3)  # whole pixels: a tile off the mosaic's pixel lattice is read nearest
+    _altered_dem(drive_dir / "dem", tmp_path / "dem", shifted, dxyz, wrong)
+    res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg)
+    got = {Path(t.path).name: t for t in DatasetStore(tmp_path / "ds.zarr").info.drives[0].tiles}
+    s = next(t for n, t in got.items() if shifted in n)
+    assert s.status == "corrected", s
+    assert np.hypot(s.offset_m[0] - dxyz[0], s.offset_m[1] - dxyz[1]) < 0.5 and abs(s.offset_m[2] - dxyz[2]) < 0.1, s
+    np.testing.assert_allclose(s.applied_m, s.offset_m, atol=1e-3)
+    w = next(t for n, t in got.items() if wrong in n)
+    assert w.status == "set_aside", w
+    assert any(wrong in p for p in DatasetStore(tmp_path / "ds.zarr").info.drives[0].suspect_tiles)
+    assert set(res.rejected) <= {"suspect_tile"}, res.rejected  # samples mostly on the foreign tile, beyond carry_over_m

@@ -39,6 +39,34 @@ def test_obstacle_at_known_point_lands_in_documented_cell(res, size, yaw):
     assert f.region[ti, tj] == 1 and f.elevation[ti, tj] == pytest.approx(-0.5)
 
 
+@pytest.mark.parametrize("rule, crown", [("mean", 2.406), ("ground", 0.0)])
+def test_elevation_rule_under_a_crown(rule, crown):
+    """A crown (4 m, 2 m wide) seen from afar in 3 maps and the ground under it in 2: the
+    paper's mean mixes them (2.4 m), rule ground keeps the ground; a rock (0.6 m) seen in
+    every map is kept by both rules."""
+    res, n = 0.2, 60
+    maps = []
+    for t in range(5):
+        elev = np.zeros((n, n), np.float32)
+        if t < 3:
+            elev[20:30, 20:30] = 4.0 + 0.01 * t
+        elev[45:48, 45:48] = 0.6
+        conf = np.ones((n, n), np.float32)
+        maps.append(to_lattice(t * 10**8, (elev, np.zeros_like(elev), conf), np.zeros(3), 0.0, res, res))
+    s = SampleGrid(0, np.zeros(3), 0.0, 0, n, res)
+    p = FuseParams(window_ns=10**9, elevation_rule=rule, top_height_m=0.5, top_footprint_m=4.0)
+    (_, f), = list(fuse_range(MapSource.from_list(maps), [s], p))
+    assert f.elevation[25, 25] == pytest.approx(crown, abs=1e-4)
+    assert f.count[25, 25] == (5 if rule == "mean" else 2)
+    assert f.elevation[46, 46] == pytest.approx(0.6, abs=1e-5) and f.count[46, 46] == 5
+    assert f.elevation[5, 5] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_unknown_elevation_rule_is_refused():
+    with pytest.raises(ValueError, match="elevation rule 'max'"):
+        FuseParams(window_ns=1, elevation_rule="max")
+
+
 def test_empty_window_gives_unobserved_cells():
     m = to_lattice(0, tuple(np.ones((4, 4), np.float32) for _ in range(3)), np.zeros(3), 0.0, 1.0, 1.0)
     s = SampleGrid(10**12, np.zeros(3), 0.0, -1, 8, 1.0)

@@ -32,7 +32,8 @@ def scenarios(draw):
     src = MapSource.from_list(maps)
     window_ms = draw(st.integers(1, 20_000))
     past_ms = draw(st.sampled_from([0, 0, 2_000]))
-    params = FuseParams(window_ns=window_ms * 1_000_000, past_ns=past_ms * 1_000_000, min_conf=0.1, risk_min_conf=0.5, tile=draw(st.sampled_from([4, 8, 64])))
+    params = FuseParams(window_ns=window_ms * 1_000_000, past_ns=past_ms * 1_000_000, min_conf=0.1, risk_min_conf=0.5, tile=draw(st.sampled_from([4, 8, 64])),
+                        elevation_rule=draw(st.sampled_from(["mean", "ground"])), top_height_m=0.5, top_footprint_m=3.0)
     n_s = draw(st.integers(1, 12))
     ts = np.sort(rng.integers(0, 30_000, n_s)) * 1_000_000
     samples = []

@@ -28,7 +28,7 @@ from gtgen.runtime.pool import Pool
 from gtgen.storage.dataset import ShardWriter
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedStore
-from gtgen.storage.schema import SAMPLES_PER_SHARD, BagRef, DatasetAttrs, DriveEntry
+from gtgen.storage.schema import SAMPLES_PER_SHARD, BagRef, DatasetAttrs, DriveEntry, TileEntry
 
 
 @dataclass
@@ -151,7 +151,18 @@ def drive_entry(drive_path: Path, drive: DriveStore, crs: str, al: Alignment, na
     """Return the dataset's record of one drive."""
     bags = [BagRef(**b) for b in drive.bags]
     return DriveEntry(name=name or (Path(bags[0].path).stem if bags else drive_path.stem), drive_store=str(drive_path.resolve()),
-                      bags=bags, crs=crs, alignment=al.placement.alignment(), suspect_tiles=suspect_tiles or [])
+                      bags=bags, crs=crs, alignment=al.placement.alignment(), suspect_tiles=suspect_tiles or [],
+                      tiles=[_tile_entry(t) for t in al.tiles if t.fits or t.status != "unjudged"])
+
+
+def _tile_entry(t) -> TileEntry:
+    """Return the dataset's record of a tile's judgement (NaN as null)."""
+    def vals(a) -> list[float | None]:
+        return [round(float(x), 4) if np.isfinite(x) else None for x in a]
+
+    return TileEntry(path=t.name, status=t.status, fits=t.fits, offset_m=vals(t.offset), sigma_m=vals(t.sigma),
+                     applied_m=[round(float(x), 4) for x in t.applied],
+                     border_step_m=round(float(t.border_step), 4) if np.isfinite(t.border_step) else None)
 
 
 def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], image_size: tuple[int, int], cameras: list[str],

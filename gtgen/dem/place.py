@@ -7,7 +7,6 @@ keeps it), else from the drive's GNSS fit.
 
 from __future__ import annotations
 
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import PlanarFit, gnss_fit
 from gtgen.dem.icp import IcpResult, icp_4dof
-from gtgen.dem.tiles import DemSource, sample_bilinear
+from gtgen.dem.tiles import DemSource, TileOffset, sample_bilinear
 from gtgen.errors import DemError
 from gtgen.geometry import invert, yaw_transform
 from gtgen.grids import grid_xy
@@ -28,8 +27,11 @@ from gtgen.storage.fused import FusedStore
 
 MIN_ICP_POINTS = 100
 COARSE = 3.0  # correspondence distance of the first pass from a drifted prior, in icp_max_distance_m
-MIN_SIDE_CELLS = 800  # observed cells on each side of a tile border before the sides are fitted apart
-MIN_BORDER_FITS = 3  # fits of a border before its offset is trusted
+MIN_TILE_FIT_CELLS = 400  # observed ground cells of a sample on a tile before the tile is fitted alone (short: 256 m^2)
+MIN_TILE_FITS = 3  # fits of a tile before its offset is trusted
+TILE_FIT_ITERATIONS = 3  # times dem.icp_iterations
+MIN_BORDER_PIXELS = 50  # border pixels with a neighbour before the border step is judged
+SIGMA_FLOOR_M = 0.02  # the least uncertainty a tile fit claims per axis [m]
 
 
 def dem_patch(dem: DemSource, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
@@ -101,6 +103,40 @@ def vegetation(d: NDArray, mask: NDArray, vegetation_m: float) -> NDArray[np.boo
     return binary_dilation(binary_opening(high, np.ones((2, 2), bool)), iterations=1) & mask
 
 
+@dataclass(frozen=True)
+class TileJudgement:
+    """What a drive's observations say of one DEM tile: its status (``ok``: used as it is,
+    ``corrected``: read put back by ``applied``, ``set_aside``: not used, ``unjudged``: too
+    few fits), how many fits measured it, and its measured offset (dx, dy, dz) [m, working
+    CRS: where the tile's content lies against the ground], the offset's uncertainty (1
+    sigma per axis: the larger of the fits' conditioning and their spread) and the fits'
+    robust spread, and the height step across its borders with neighbours as read."""
+
+    index: int
+    name: str
+    status: str
+    fits: int
+    offset: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    sigma: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    spread: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    applied: NDArray = field(default_factory=lambda: np.zeros(3))
+    border_step: float = float("nan")  # median height step across its borders with neighbours, as read [m]
+
+    @property
+    def put_back(self) -> TileOffset | None:
+        """The offset the tile is read put back by, None if not corrected."""
+        return TileOffset(*map(float, self.applied)) if self.status == "corrected" else None
+
+
+def _offset(fits: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Return the median offset of a tile's fits, its uncertainty and the fits' spread (1.4826 MAD)."""
+    if len(fits) == 0:
+        return np.full(3, np.nan), np.full(3, np.nan), np.full(3, np.nan)
+    off = np.median(fits[:, :3], axis=0)
+    spread = 1.4826 * np.median(np.abs(fits[:, :3] - off), axis=0)
+    return off, np.maximum(np.median(fits[:, 3:], axis=0), spread), spread
+
+
 class DrivePlacement:
     """A drive's placement in the DEM's CRS, refined sample by sample (see ``place``)."""
 
@@ -114,7 +150,7 @@ class DrivePlacement:
         self.gnss_t, self.gnss_xy = gnss  # (t_ns, (odom x, y, CRS E, N)) of the usable fixes
         n = len(dem.tile_names)
         self.tile_cells, self.tile_bad = np.zeros(n, np.int64), np.zeros(n, np.int64)
-        self.borders: dict[tuple[int, int], list[NDArray]] = {}  # (tile a, tile b): offsets of b from a, per fit
+        self.tile_fits: dict[int, list[NDArray]] = {}  # tile: per fit (dx, dy, dz, sigma x, y, z) [m], see _fit_tiles
 
     @classmethod
     def of_drive(cls, cfg: GtgenConfig, drive: DriveStore, fused: FusedStore, dem: DemSource, dem_dir: Path) -> DrivePlacement:
@@ -132,7 +168,13 @@ class DrivePlacement:
     def without(self, tiles: frozenset[int]) -> DrivePlacement:
         """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
         not read ``tiles``."""
-        return DrivePlacement(self.cfg, self.dem.without(tiles), self.fit, self.dz_dem, (self.gnss_t, self.gnss_xy))
+        return self.adjusted(tiles, None)
+
+    def adjusted(self, tiles: frozenset[int], offsets: dict[int, TileOffset] | None) -> DrivePlacement:
+        """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
+        not read ``tiles`` either, and reads the tiles of ``offsets`` put back (these alone;
+        None: the same as this one)."""
+        return DrivePlacement(self.cfg, self.dem.adjusted(tiles, offsets), self.fit, self.dz_dem, (self.gnss_t, self.gnss_xy))
 
     @property
     def geoid_offset_m(self) -> float:
@@ -178,10 +220,8 @@ class DrivePlacement:
         aligned = dem_patch(self.dem, T, self.X, self.Y)
         sig = {**self._signals(res, T, T_odom_target, t_ns, elev, ground, aligned), **extra}
         reason = self._decide(res, sig, dc.drift_allowance * age if self.chained else 0.0)
-        if self.chained and not stale:  # a prior to judge the DEM by
-            self._judge_tiles(T_prior, ground, d)
-            if res.fitness >= dc.min_fitness and res.rmse_m <= dc.max_rmse_m and k % 2 == 0:
-                self._judge_borders(k, T, ground, elev, aligned)
+        if self.chained and not stale and k % 2 == 0:  # a prior to judge the DEM by
+            self._fit_tiles(k, T_prior, ground, elev, dem)
         if reason == codes.OK:
             self.T_prior = T @ invert(T_odom_target)
             self.chained, self.kept_at_m = True, distance_m
@@ -240,74 +280,101 @@ class DrivePlacement:
             return codes.GNSS_DISAGREES
         return codes.OK
 
-    def _judge_tiles(self, T: NDArray, ground: NDArray, diff: NDArray) -> None:
-        """Count per DEM tile the observed ground cells of a sample at a trusted prior ``T``,
-        and those that disagree with the DEM there (``diff``, after the median offset): a
-        tile of another place disagrees."""
-        if not ground.any():
-            return
+    def _fit_tiles(self, k: int, T: NDArray, ground: NDArray, elev: NDArray, dem: NDArray) -> None:
+        """Fit the observed ground of a sample at a trusted prior ``T`` (``dem``: the DEM there)
+        to each tile it covers alone (MIN_TILE_FIT_CELLS cells or more): the correction is
+        where that tile lies against the placement the drive's other tiles and odometry
+        give, whether or not the sample crosses a border. Record per tile the offset and its
+        uncertainty (from the fit's conditioning: on smooth ground the horizontal is weakly
+        observed), and count its ground cells that still disagree with it after the fit (a
+        tile of another place fits nowhere)."""
         tile = self._tiles_at(T, ground)
-        d = diff[ground]
-        bad = np.abs(d - np.median(d)) > self.cfg.dem.disagreement_m
-        ok = tile >= 0
-        n = len(self.tile_cells)
-        self.tile_cells += np.bincount(tile[ok], minlength=n)
-        self.tile_bad += np.bincount(tile[ok], weights=bad[ok], minlength=n).astype(np.int64)
-
-    def _judge_borders(self, k: int, T: NDArray, ground: NDArray, elev: NDArray, dem: NDArray) -> None:
-        """Where a sample's observed ground spans two tiles, fit each side to its own tile:
-        the difference of the two corrections is how far one tile lies from the other (a
-        misplaced tile shows in every border it has, a good one only in the border with it)."""
-        src_tile = self._tiles_at(T, ground)
+        ids, counts = np.unique(tile[tile >= 0], return_counts=True)
         have = np.isfinite(dem)
         tgt_tile = self._tiles_at(T, have)
-        ids, counts = np.unique(src_tile[src_tile >= 0], return_counts=True)
-        if len(ids) < 2:
-            return
-        a, b = ids[np.argsort(counts)[-2:]]
-        if min((src_tile == a).sum(), (src_tile == b).sum()) < MIN_SIDE_CELLS:
-            return
         dc = self.cfg.dem
-        Xs, Ys, Xt, Yt = self.X[ground], self.Y[ground], self.X[have], self.Y[have]
-        nrm = _normals(np.where(have, dem, np.nanmedian(dem)), self.cfg.grids.short.resolution_m)[have]
-        side = {}
-        for i in (a, b):
-            s_, t_ = src_tile == i, tgt_tile == i
-            src = np.column_stack([Xs[s_], Ys[s_], elev[ground][s_]])
+        nrm_all = _normals(np.where(have, dem, np.nanmedian(dem) if have.any() else 0.0), self.cfg.grids.short.resolution_m)
+        for i in ids[counts >= MIN_TILE_FIT_CELLS]:
+            on = np.zeros(ground.shape, bool)
+            on[ground] = tile == i
+            tmask = np.zeros(ground.shape, bool)
+            tmask[have] = tgt_tile == i
+            if tmask.sum() < MIN_ICP_POINTS:
+                continue
+            src = np.column_stack([self.X[on], self.Y[on], elev[on]])
             src = src[np.random.default_rng(k).choice(len(src), min(len(src), dc.icp_max_points // 4), replace=False)]
-            res = icp_4dof(src, np.column_stack([Xt[t_], Yt[t_], dem[have][t_]]), nrm[t_], dc.icp_max_distance_m, dc.icp_iterations)
-            side[int(i)] = res.T[:2, 3]
-        pair = (int(min(a, b)), int(max(a, b)))
-        self.borders.setdefault(pair, []).append(np.concatenate([side[pair[0]], side[pair[1]]]))
+            tgt = np.column_stack([self.X[tmask], self.Y[tmask], dem[tmask]])
+            nrm = nrm_all[tmask]
+            it = TILE_FIT_ITERATIONS * dc.icp_iterations  # one tile's part of a sample: a weaker fit, slower to converge
+            init = icp_4dof(src, tgt, nrm, COARSE * dc.icp_max_distance_m, it).T
+            res = icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, it, init=init)
+            c = src.mean(axis=0)
+            move = res.T[:3, :3] @ c + res.T[:3, 3] - c  # how far the tile's cells had to move onto it (target frame)
+            d = np.array([*(T[:2, :2] @ move[:2]), move[2]])
+            n = nrm_all[on]
+            H = n.T @ n  # point-to-plane information in x, y, z
+            sigma = max(res.rmse_m, SIGMA_FLOOR_M) * np.sqrt(np.clip(np.diag(np.linalg.pinv(H)) * len(n) / max(len(src), 1), 0, None))
+            sigma = np.maximum(sigma, SIGMA_FLOOR_M)
+            sxy = T[:2, :2] @ np.diag(sigma[:2] ** 2) @ T[:2, :2].T
+            self.tile_fits.setdefault(int(i), []).append(np.array([*d, np.sqrt(sxy[0, 0]), np.sqrt(sxy[1, 1]), sigma[2]]))
+            aligned = dem_patch(self.dem, T @ res.T, self.X, self.Y)
+            m = on & np.isfinite(aligned)
+            if m.sum() < MIN_ICP_POINTS:
+                continue
+            r = elev[m] - aligned[m]
+            self.tile_cells[i] += int(m.sum())
+            self.tile_bad[i] += int((np.abs(r - np.median(r)) > dc.disagreement_m).sum())
 
     def _tiles_at(self, T: NDArray, mask: NDArray) -> NDArray[np.int64]:
         E = T[0, 0] * self.X[mask] + T[0, 1] * self.Y[mask] + T[0, 3]
         N = T[1, 0] * self.X[mask] + T[1, 1] * self.Y[mask] + T[1, 3]
         return self.dem.tile_of(E, N)
 
-    def suspect_tiles(self) -> frozenset[int]:
-        """Return the tiles the drive's observations contradict: their observed ground
-        disagrees with them (enough cells seen), or most of their borders with the other
-        tiles do not match (see ``_judge_borders``)."""
+    def judge_tiles(self) -> list[TileJudgement]:
+        """Return per tile what the drive's observations say of it (see ``TileJudgement``):
+        set aside when its observed ground still disagrees with it after its own fit (enough
+        cells seen) or its fits do not agree on one offset (a tile of another place); put
+        back when its offset is consistent and larger than both its uncertainty (twice) and
+        the smallest correction configured; else kept as it is, or not judged (too few fits).
+
+        The fits measure a tile against the chain's placement, which follows the tiles it
+        was refined on: offsets are relative, so they are taken against their median over
+        the tiles fitted (most tiles lie where they should), and added to the offset a tile
+        is already read put back by."""
         dc = self.cfg.dem
         share = self.tile_bad / np.maximum(self.tile_cells, 1)
-        out = {int(i) for i in np.nonzero((self.tile_cells >= dc.min_tile_cells) & (share > dc.max_tile_disagreement))[0]}
-        off, ok, pull = defaultdict(int), defaultdict(int), {}
-        for (a, b), fits in self.borders.items():
-            if len(fits) < MIN_BORDER_FITS or a in out or b in out:
+        meas: dict[int, tuple[NDArray, NDArray, NDArray]] = {}
+        out: dict[int, TileJudgement] = {}
+        for i, name in enumerate(self.dem.tile_names):
+            fits = np.array(self.tile_fits.get(i, []))
+            if i in self.dem.exclude:
+                out[i] = TileJudgement(i, name, "set_aside", len(fits))
+            elif self.tile_cells[i] >= dc.min_tile_cells and share[i] > dc.max_tile_disagreement:
+                out[i] = TileJudgement(i, name, "set_aside", len(fits), *_offset(fits))
+            elif len(fits) < MIN_TILE_FITS:
+                out[i] = TileJudgement(i, name, "unjudged", len(fits), *_offset(fits))
+            else:
+                meas[i] = _offset(fits)
+        ref = np.median(np.array([m[0] for m in meas.values()]), axis=0) if len(meas) > 2 else np.zeros(3)
+        for i, (off, sig, spread) in meas.items():
+            name, fits = self.dem.tile_names[i], len(self.tile_fits[i])
+            prev = self.dem.offsets.get(i)
+            total = off - ref + (np.zeros(3) if prev is None else np.array([prev.dx, prev.dy, prev.dz]))
+            if spread[:2].max() > dc.tile_offset_spread_m or spread[2] > dc.tile_offset_spread_z_m \
+                    or np.hypot(*total[:2]) > dc.max_tile_offset_m:
+                out[i] = TileJudgement(i, name, "set_aside", fits, total, sig, spread)
                 continue
-            c = np.median(np.array(fits), axis=0)  # corrections of side a (x, y) and side b
-            far = float(np.linalg.norm(c[2:] - c[:2])) > dc.max_correction_m
-            for i, ci in ((a, c[:2]), (b, c[2:])):
-                (off if far else ok)[i] += 1
-                pull[(i, a, b)] = float(np.linalg.norm(ci))
-        # a misplaced tile mismatches most of its borders; of a border alone, the side the
-        # placements (anchored on the tiles driven before) had to move more for
-        bad = {i for i in off if off[i] > ok[i] and off[i] > 1}
-        for a, b in self.borders:
-            if off[a] == 1 and off[b] == 1 and ok[a] == ok[b] == 0 and (a, a, b) in pull:
-                bad.add(a if pull[(a, a, b)] > pull[(b, a, b)] else b)
-        return frozenset(out | bad)
+            h = np.hypot(*total[:2]) > max(dc.tile_offset_min_m, 2 * np.hypot(*sig[:2]))
+            v = abs(total[2]) > max(dc.tile_offset_min_z_m, 2 * sig[2])
+            applied = np.array([total[0] if h else 0.0, total[1] if h else 0.0, total[2] if v else 0.0])
+            # put back (or as it is), a tile must continue its neighbours' terrain: a tile of
+            # another place may still fit the observed ground with some spurious offset
+            step, n_border = self.dem.border_step(i, TileOffset(*map(float, applied)) if (h or v) else None)
+            if n_border >= MIN_BORDER_PIXELS and step > dc.max_border_step_m:
+                out[i] = TileJudgement(i, name, "set_aside", fits, total, sig, spread, border_step=step)
+                continue
+            out[i] = TileJudgement(i, name, "corrected" if (h or v) else "ok", fits, total, sig, spread, applied, step)
+        return [out[i] for i in range(len(self.dem.tile_names))]
 
     def _on_set_aside(self, T: NDArray, mask: NDArray) -> float:
         """Return the share of the cells ``mask`` that lie on tiles set aside, at placement ``T``."""

@@ -8,7 +8,9 @@ A drive is placed in one working CRS (``TileIndex.working_crs``): the tiles' own
 share a projected one, else the UTM zone of the drive. ``DemMosaic`` reads a window in
 that CRS: tiles in another CRS (or not float32, or not north-up) through rasterio's
 ``WarpedVRT`` (bilinear) onto the working lattice, mosaicked by ``rasterio.merge.merge``;
-heights in feet or other vertical units are converted to metres.
+heights in feet or other vertical units are converted to metres. A tile found shifted
+(``TileOffset``, measured by dem-align) is read put back: its content from (E + dx, N + dy),
+bilinearly, less dz.
 """
 
 from __future__ import annotations
@@ -211,6 +213,7 @@ class DemSource(Protocol):
 
     crs: str
     exclude: frozenset[int]
+    offsets: dict[int, TileOffset]
 
     @property
     def tile_names(self) -> list[str]:
@@ -228,8 +231,22 @@ class DemSource(Protocol):
     def without(self, tiles: frozenset[int]) -> DemSource:
         """Return the same source without ``tiles`` (this one is closed)."""
 
+    def adjusted(self, tiles: frozenset[int], offsets: dict[int, TileOffset] | None) -> DemSource:
+        """Return the same source without ``tiles`` either and with ``offsets`` put back
+        (these alone; None: this one's); this one is closed."""
+
     def close(self) -> None:
         """Release open files."""
+
+
+@dataclass(frozen=True)
+class TileOffset:
+    """Where a tile's content lies against the ground [m, working CRS]: the tile shows at
+    (E + dx, N + dy) the ground of (E, N), dz higher. Reading it put back subtracts this."""
+
+    dx: float
+    dy: float
+    dz: float
 
 
 @dataclass(frozen=True)
@@ -241,32 +258,38 @@ class DemRef:
     cache: str | None
     crs: str
     exclude: frozenset[int] = frozenset()
+    offsets: tuple[tuple[int, TileOffset], ...] = ()  # tiles read put back
 
     def open(self) -> DemMosaic:
         """Return the mosaic (reading the header cache, never rewriting it)."""
         index = TileIndex.build(Path(self.source), cache=Path(self.cache) if self.cache else None, update_cache=False)
-        return DemMosaic(index, self.crs, self.exclude)
+        return DemMosaic(index, self.crs, self.exclude, dict(self.offsets))
 
 
 class DemMosaic:
     """Mosaicked reads of a TileIndex in the working CRS ``crs``, on one pixel lattice (a ``DemSource``)."""
 
-    def __init__(self, index: TileIndex, crs: str, exclude: frozenset[int] = frozenset()) -> None:
-        """``exclude``: indices of tiles not to read (tiles judged wrong by dem-align)."""
+    def __init__(self, index: TileIndex, crs: str, exclude: frozenset[int] = frozenset(),
+                 offsets: dict[int, TileOffset] | None = None) -> None:
+        """``exclude``: indices of tiles not to read (tiles judged wrong by dem-align);
+        ``offsets``: tiles read put back (shifted tiles, see ``TileOffset``)."""
         from pyproj import CRS
         from rasterio.warp import transform_bounds
 
         self.index, self.crs, self.exclude = index, crs, frozenset(exclude)
+        self.offsets: dict[int, TileOffset] = dict(offsets or {})
         work = CRS.from_user_input(crs)
-        self._bounds, res = [], []
+        self._bounds, self._raw_bounds, res = [], [], []  # where tiles are read (put back), where their files say
         for t in index.tiles:
             same = CRS.from_wkt(t.crs) == work
             b = (t.left, t.bottom, t.right, t.top) if same else transform_bounds(t.crs, crs, t.left, t.bottom, t.right, t.top, densify_pts=21)
-            self._bounds.append(b)
+            self._raw_bounds.append(b)
+            o = self.offsets.get(len(self._bounds))
+            self._bounds.append(b if o is None else (b[0] - o.dx, b[1] - o.dy, b[2] - o.dx, b[3] - o.dy))
             n_x = max(1, round((t.right - t.left) / t.res_x))
             res.append((b[2] - b[0]) / n_x)
         self.res = float(min(res))
-        anchor = next((t for t, b in zip(index.tiles, self._bounds) if CRS.from_wkt(t.crs) == work and t.direct), None)
+        anchor = next((t for t, b in zip(index.tiles, self._raw_bounds) if CRS.from_wkt(t.crs) == work and t.direct), None)
         self._anchor = (anchor.left, anchor.top) if anchor else (0.0, 0.0)
         self._same = [CRS.from_wkt(t.crs) == work for t in index.tiles]
         self._open: OrderedDict[int, Any] = OrderedDict()
@@ -278,8 +301,13 @@ class DemMosaic:
 
     def without(self, tiles: frozenset[int]) -> DemMosaic:
         """Return the mosaic without ``tiles`` (this one is closed)."""
+        return self.adjusted(tiles, None)
+
+    def adjusted(self, tiles: frozenset[int], offsets: dict[int, TileOffset] | None) -> DemMosaic:
+        """Return the mosaic without ``tiles`` either and with ``offsets`` put back (these
+        alone; None: this one's); this one is closed."""
         self.close()
-        return DemMosaic(self.index, self.crs, self.exclude | tiles)
+        return DemMosaic(self.index, self.crs, self.exclude | tiles, self.offsets if offsets is None else offsets)
 
     def bounds(self) -> tuple[float, float, float, float]:
         """Return the union bounds (left, bottom, right, top) of every tile in the working CRS."""
@@ -310,9 +338,10 @@ class DemMosaic:
         if self._same[i] and t.direct and abs(t.res_x - self.res) < 1e-9 * self.res and abs(t.res_y - self.res) < 1e-9 * self.res:
             ds = (src,)
         else:
-            x0, y0 = self._snap(self._bounds[i][0], self._bounds[i][3])
-            w = int(np.ceil((self._bounds[i][2] - x0) / self.res)) + 1
-            h = int(np.ceil((y0 - self._bounds[i][1]) / self.res)) + 1
+            b = self._raw_bounds[i]
+            x0, y0 = self._snap(b[0], b[3])
+            w = int(np.ceil((b[2] - x0) / self.res)) + 1
+            h = int(np.ceil((y0 - b[1]) / self.res)) + 1
             vrt = WarpedVRT(src, crs=self.crs, transform=Affine(self.res, 0, x0, 0, -self.res, y0), width=w, height=h,
                             resampling=Resampling.bilinear, dtype="float32", nodata=np.nan, src_nodata=t.nodata, tolerance=0.01)
             ds = (vrt, src)
@@ -351,13 +380,81 @@ class DemMosaic:
         box = (x0, y0 - h * res, x0 + w * res, y0)
         hits = [i for i, b in enumerate(self._bounds)
                 if i not in self.exclude and b[0] < box[2] and b[2] > box[0] and b[1] < box[3] and b[3] > box[1]]
-        for scale in sorted({self.index.tiles[i].z_to_m for i in hits}):
-            group = [self._dataset(i)[0] for i in hits if self.index.tiles[i].z_to_m == scale]
+        plain = [i for i in hits if i not in self.offsets]
+        for scale in sorted({self.index.tiles[i].z_to_m for i in plain}):
+            group = [self._dataset(i)[0] for i in plain if self.index.tiles[i].z_to_m == scale]
             data, _ = merge(group, bounds=box, res=res, nodata=np.nan, dtype="float32")
             grid = data[0, :h, :w].astype(np.float32) * np.float32(scale)
             np.copyto(out, grid, where=np.isnan(out))
+        for i in hits:
+            if i in self.offsets:
+                np.copyto(out, self._read_put_back(i, box, h, w), where=np.isnan(out))
         out[out < -1e4] = np.nan  # nodata spelled as a huge negative number without a nodata tag
         return out, (float(x0), float(y0), float(res))
+
+    def border_step(self, i: int, offset: TileOffset | None) -> tuple[float, int]:
+        """Return the height step [m] across tile ``i``'s borders with its neighbours when it
+        is read put back by ``offset`` (None: as its file says), and how many border pixels
+        had a neighbour: per pixel the jump from the tile's edge pixel to the neighbour's,
+        less the mean slope of the two sides; the median per side, the least over the sides
+        with a neighbour along a quarter of them. A tile where it belongs continues its
+        neighbours' terrain (steps of the DEM's noise) on every side, even beside a tile of
+        another place; a shifted or foreign one on none."""
+        offsets = dict(self.offsets)
+        offsets.pop(i, None)
+        if offset is not None:
+            offsets[i] = offset
+        alone = DemMosaic(self.index, self.crs, frozenset(range(len(self.index.tiles))) - {i}, offsets)
+        others = DemMosaic(self.index, self.crs, self.exclude | {i}, offsets)
+        try:
+            l, b, r, t = alone._bounds[i]
+            res = self.res
+            steps = []
+            for (x0, y0, x1, y1), (nx, ny) in (((l, b, l, t), (-1, 0)), ((r, b, r, t), (1, 0)), ((l, b, r, b), (0, -1)), ((l, t, r, t), (0, 1))):
+                n = max(int(np.hypot(x1 - x0, y1 - y0) / res), 1)
+                u = (np.arange(n) + 0.5) / n
+                E, N = x0 + u * (x1 - x0), y0 + u * (y1 - y0)
+                box = (min(x0, x1) - 3 * res, min(y0, y1) - 3 * res, max(x0, x1) + 3 * res, max(y0, y1) + 3 * res)
+                ga, oa = alone.read(*box)
+                go, oo = others.read(*box)
+                hi1, hi2 = (_nearest(ga, oa, E - nx * d * res, N - ny * d * res) for d in (0.5, 1.5))
+                ho1, ho2 = (_nearest(go, oo, E + nx * d * res, N + ny * d * res) for d in (0.5, 1.5))
+                st = (ho1 - hi1) - 0.5 * ((hi1 - hi2) + (ho2 - ho1))
+                steps.append((np.abs(st[np.isfinite(st)]), n))
+            sides = [float(np.median(a)) for a, n in steps if len(a) >= max(n // 4, 1)]
+            return (min(sides) if sides else float("nan")), int(sum(len(a) for a, n in steps if len(a) >= max(n // 4, 1)))
+        finally:
+            alone.close()
+            others.close()
+
+    def _read_put_back(self, i: int, box: tuple[float, float, float, float], h: int, w: int) -> NDArray[np.float32]:
+        """Return tile ``i`` put back on the (h, w) pixels of ``box``: its content at the
+        pixel centres moved by the offset, bilinear, less dz (NaN off the tile)."""
+        from rasterio.merge import merge
+
+        o, res = self.offsets[i], self.res
+        l, b, r, t = _put_back_box(box, o, res)
+        sx, sy = self._snap(l, t)
+        sw, sh = int(np.ceil((r - sx) / res)), int(np.ceil((sy - b) / res))
+        data, _ = merge([self._dataset(i)[0]], bounds=(sx, sy - sh * res, sx + sw * res, sy), res=res, nodata=np.nan, dtype="float32")
+        grid = data[0, :sh, :sw].astype(np.float32) * np.float32(self.index.tiles[i].z_to_m)
+        grid[grid < -1e4] = np.nan
+        E = box[0] + (np.arange(w) + 0.5) * res + o.dx
+        N = box[3] - (np.arange(h) + 0.5) * res + o.dy
+        return sample_bilinear(grid, (sx, sy, res), E[None, :], N[:, None]) - np.float32(o.dz)
+
+
+def _put_back_box(box: tuple[float, float, float, float], o: TileOffset, res: float) -> tuple[float, float, float, float]:
+    """Return ``box`` moved by the offset and grown by two pixels (what a put-back read needs)."""
+    return box[0] + o.dx - 2 * res, box[1] + o.dy - 2 * res, box[2] + o.dx + 2 * res, box[3] + o.dy + 2 * res
+
+
+def _nearest(grid: NDArray[np.float32], origin: tuple[float, float, float], E: NDArray, N: NDArray) -> NDArray[np.float32]:
+    """Return the pixel of ``grid`` (as ``sample_bilinear`` lays it out) under each point; NaN outside."""
+    x0, y0, res = origin
+    col, row = np.floor((E - x0) / res).astype(np.int64), np.floor((y0 - N) / res).astype(np.int64)
+    ok = (row >= 0) & (row < grid.shape[0]) & (col >= 0) & (col < grid.shape[1])
+    return np.where(ok, grid[np.where(ok, row, 0), np.where(ok, col, 0)], np.float32(np.nan))
 
 
 def sample_bilinear(grid: NDArray[np.float32], origin: tuple[float, float, float], E: NDArray, N: NDArray) -> NDArray[np.float32]:

@@ -4,10 +4,14 @@ Semantics (data_schema.md, 'Regions'), for a sample at t with current map m0 (th
 map stamped <= t) and window [a, b] = [min(t - past, t_m0), t + window]:
 
 - elevation: mean over maps in the window where the cell is finite and
-  confidence > min_conf, minus the base z at t;
+  confidence > min_conf, minus the base z at t (rule ``mean``, the paper's); with rule
+  ``ground`` the mean over those maps where the cell is not in the map's top layer
+  (``lattice.top_layer``: crowns, bushes), falling back to the mean of all where every
+  observation was top layer (a rock or a crown seen only from above: all agree);
 - confidence: max over maps in the window;
 - risk: the value of the latest map in the window with confidence >= risk_min_conf;
-- count, last observation: how many maps gave the elevation, and the latest one's stamp;
+- count, last observation: how many maps gave the elevation, and the latest confident
+  one's stamp;
 - region: 1 where m0 is confident (> min_conf), else 2 where some map in the window
   is, else 3 (unobserved; the DEM stage fills or zeroes these).
 
@@ -29,7 +33,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen import codes
-from gtgen.fuse.lattice import Atlas, LatticeMap, gather_map, target_lattice_index
+from gtgen.fuse.lattice import Atlas, LatticeMap, gather_map, target_lattice_index, top_layer
+
+ELEVATION_RULES = ("mean", "ground")
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,28 @@ class FuseParams:
     min_conf: float = 0.1
     risk_min_conf: float = 0.5
     tile: int = 128
+    elevation_rule: str = "mean"
+    top_height_m: float = 0.5
+    top_footprint_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        if self.elevation_rule not in ELEVATION_RULES:
+            raise ValueError(f"elevation rule {self.elevation_rule!r}; expected one of {list(ELEVATION_RULES)}")
+
+    @property
+    def ground(self) -> bool:
+        """Whether observations in a map's top layer are kept apart (rule ``ground``)."""
+        return self.elevation_rule == "ground"
+
+
+def ground_obs(m: LatticeMap, p: FuseParams) -> NDArray[np.bool_] | None:
+    """Return the cells of map ``m`` that observe the ground under rule ``ground`` (computed
+    once per loaded map), None under rule ``mean``."""
+    if not p.ground:
+        return None
+    if m.top is None:
+        m.top = top_layer(m, p.min_conf, p.top_footprint_m, p.top_height_m)
+    return ~m.top
 
 
 @dataclass(frozen=True)
@@ -112,10 +140,14 @@ def window_bounds(s: SampleGrid, maps: MapSource, p: FuseParams) -> tuple[int, i
 
 
 def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParams,
-            ssum: NDArray, cnt: NDArray, risk: NDArray, last: NDArray, cmax: NDArray) -> Fused:
+            ssum: NDArray, cnt: NDArray, risk: NDArray, last: NDArray, cmax: NDArray,
+            gsum: NDArray | None = None, gcnt: NDArray | None = None) -> Fused:
     z = s.pos[2]
+    used = cnt
+    if gsum is not None and gcnt is not None:  # rule ground: the ground observations where there are any
+        ssum, used = np.where(gcnt > 0, gsum, ssum), np.where(gcnt > 0, gcnt, cnt)
     with np.errstate(invalid="ignore", divide="ignore"):
-        elev = np.where(cnt > 0, ssum / np.maximum(cnt, 1) - z, np.nan).astype(np.float32)
+        elev = np.where(used > 0, ssum / np.maximum(used, 1) - z, np.nan).astype(np.float32)
     conf = np.where(np.isfinite(cmax), cmax, np.nan).astype(np.float32)
     if 0 <= s.current_map < len(maps):
         xe, xr, xc = gather_map(maps[s.current_map], I, J)
@@ -125,7 +157,7 @@ def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParam
     region = np.where(cur, codes.OBS_PC, np.where(cnt > 0, codes.OBS_F, codes.UNOBS)).astype(np.uint8)
     last_dt = np.where(last >= 0, (last - s.t_ns) * 1e-9, np.nan).astype(np.float32)
     return Fused(
-        elevation=elev, confidence=conf, risk=risk.astype(np.float32), count=np.minimum(cnt, 65535).astype(np.uint16),
+        elevation=elev, confidence=conf, risk=risk.astype(np.float32), count=np.minimum(used, 65535).astype(np.uint16),
         last_dt_s=last_dt, region=region,
         xr_elevation=(xe - z).astype(np.float32), xr_risk=xr.astype(np.float32), xr_confidence=xc.astype(np.float32),
     )
@@ -141,22 +173,30 @@ def naive_fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) 
         cmax = np.full(I.shape, -np.inf)
         risk = np.full(I.shape, np.nan)
         last = np.full(I.shape, -1, np.int64)
+        gsum, gcnt = (np.zeros(I.shape), np.zeros(I.shape, np.int64)) if p.ground else (None, None)
         for i in np.nonzero((maps.t_ns >= a) & (maps.t_ns <= b))[0]:  # stamp order
-            e, r, c = gather_map(maps[int(i)], I, J)
+            m = maps[int(i)]
+            e, r, c = gather_map(m, I, J)
             obs = np.isfinite(e) & (c > p.min_conf)
             ssum += np.where(obs, e, 0.0)
             cnt += obs
+            g = ground_obs(m, p)
+            if g is not None:
+                gobs = obs & (gather_map(m, I, J, layer=g)[0] == 1)
+                gsum += np.where(gobs, e, 0.0)
+                gcnt += gobs
             cmax = np.fmax(cmax, np.where(np.isfinite(c), c, -np.inf))
             robs = np.isfinite(r) & (c >= p.risk_min_conf)
             risk = np.where(robs, r, risk)
             last = np.where(obs, maps.t_ns[i], last)
-        yield k, _finish(s, I, J, maps, p, ssum, cnt, risk, last, cmax)
+        yield k, _finish(s, I, J, maps, p, ssum, cnt, risk, last, cmax, gsum, gcnt)
 
 
 # elevation sums in integer micrometres: exact under any order of adds and subtracts, so
 # a drive fused in time chunks gives bit-identical labels to one pass
 SUM_SCALE = 1e6
 _SLIDE = {"sum": ("int64", 0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1), "lstamp": ("int64", -1)}
+_GROUND = {"gsum": ("int64", 0), "gcnt": ("int32", 0)}  # rule ground: sums of the ground observations
 _MAX = {"max": ("float32", -np.inf)}
 
 
@@ -169,7 +209,7 @@ class _Sliding:
 
     def __init__(self, maps: MapSource, p: FuseParams) -> None:
         self.maps, self.p = maps, p
-        self.atlas = Atlas(p.tile, _SLIDE)
+        self.atlas = Atlas(p.tile, {**_SLIDE, **_GROUND} if p.ground else _SLIDE)
         self.next_add = 0
         self.added: list[int] = []  # added and not yet subtracted, in stamp order
 
@@ -177,11 +217,17 @@ class _Sliding:
         m = self.maps[i]
         t = int(m.t_ns)
         d = self.atlas.data
+        ground = ground_obs(m, self.p)
         for slot, dst, src in self.atlas.windows(m.i0, m.j0, *m.shape, t, create=sign > 0):
             e, c = m.elevation[src], m.confidence[src]
             obs = np.isfinite(e) & (c > self.p.min_conf)
-            d["sum"][slot][dst] += sign * np.where(obs, np.round(e * SUM_SCALE), 0).astype(np.int64)
+            ie = sign * np.where(obs, np.round(e * SUM_SCALE), 0).astype(np.int64)
+            d["sum"][slot][dst] += ie
             d["cnt"][slot][dst] += sign * obs
+            if ground is not None:
+                g = ground[src]
+                d["gsum"][slot][dst] += np.where(g, ie, 0)
+                d["gcnt"][slot][dst] += sign * (obs & g)
             if sign > 0:
                 r = m.risk[src]
                 robs = np.isfinite(r) & (c >= self.p.risk_min_conf)
@@ -201,12 +247,18 @@ class _Sliding:
             self._splat(self.added.pop(0), -1)
         self.atlas.release_older_than(a)
 
-    def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, ...]:
+        """Return (sum, count, risk, last stamp, ground sum, ground count) at lattice cells
+        (I, J) for a window starting at ``a`` (the ground ones None under rule ``mean``)."""
         isum, cnt, risk, rstamp, lstamp = self.atlas.gather(I, J, ("sum", "cnt", "risk", "rstamp", "lstamp"))
         ssum = isum / SUM_SCALE
         risk = np.where(rstamp >= a, risk, np.nan)
         lstamp = np.where(lstamp >= a, lstamp, -1)
-        return ssum, cnt, risk, lstamp
+        gsum = gcnt = None
+        if self.p.ground:
+            igsum, gcnt = self.atlas.gather(I, J, ("gsum", "gcnt"))
+            gsum = igsum / SUM_SCALE
+        return ssum, cnt, risk, lstamp, gsum, gcnt
 
 
 def _max_splat(atlas: Atlas, m: LatticeMap) -> None:
@@ -265,6 +317,6 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
             I, J = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
             cmax = np.fmax(suffix.pop(k), atlas.gather(I, J, ("max",))[0])
             sliding.advance(a, b)
-            ssum, cnt, risk, last = sliding.gather(I, J, a)
-            yield k, _finish(samples[k], I, J, maps, p, ssum, cnt, risk, last, cmax)
+            ssum, cnt, risk, last, gsum, gcnt = sliding.gather(I, J, a)
+            yield k, _finish(samples[k], I, J, maps, p, ssum, cnt, risk, last, cmax, gsum, gcnt)
         g_start = g_end

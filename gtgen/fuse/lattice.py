@@ -4,6 +4,9 @@ Every range fuses on a lattice of square cells of the range's resolution ``r`` f
 in the odom frame: lattice cell (I, J) covers [I r, (I + 1) r) x [J r, (J + 1) r).
 A GridMap that moves by whole cells (as grid_map does) is already a window of this
 lattice, so resampling it is a copy; any other map is resampled by nearest neighbour.
+
+``top_layer`` splits one map's confident cells into ground and a top layer (crowns,
+bushes) for the ``ground`` elevation rule (gtgen/fuse/fusion.py).
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ class LatticeMap:
     elevation: NDArray[np.float32]
     risk: NDArray[np.float32]
     confidence: NDArray[np.float32]
+    res: float = 1.0  # lattice resolution [m]
+    top: NDArray[np.bool_] | None = None  # top-layer cells (``top_layer``), set when a rule needs them
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -53,7 +58,7 @@ def to_lattice(
         and abs(fi - round(fi)) < 1e-4 and abs(fj - round(fj)) < 1e-4
     )
     if aligned:
-        return LatticeMap(t_ns, int(round(fi)), int(round(fj)), elev, risk, conf)
+        return LatticeMap(t_ns, int(round(fi)), int(round(fj)), elev, risk, conf, res)
     # general case: gather the map cell under each lattice cell centre of the bounding box
     c, s = np.cos(yaw), np.sin(yaw)
     hx, hy = 0.5 * nx * map_res, 0.5 * ny * map_res
@@ -70,7 +75,24 @@ def to_lattice(
     ok = (mi >= 0) & (mi < nx) & (mj >= 0) & (mj < ny)
     mi, mj = np.where(ok, mi, 0), np.where(ok, mj, 0)
     out = [np.where(ok, a[mi, mj], np.nan).astype(np.float32) for a in (elev, risk, conf)]
-    return LatticeMap(t_ns, i0, j0, *out)
+    return LatticeMap(t_ns, i0, j0, *out, res)
+
+
+def top_layer(m: LatticeMap, min_conf: float, footprint_m: float, height_m: float) -> NDArray[np.bool_]:
+    """Return the confident cells of map ``m`` that stand more than ``height_m`` above the
+    map's grey opening by a square of ``footprint_m`` (the lowest surface that a square of
+    that size fits under: crowns and bushes narrower than it are cut off, slopes are not),
+    in blobs of at least 2 x 2 cells (noise spikes come alone)."""
+    from scipy.ndimage import binary_opening, maximum_filter, minimum_filter
+
+    e, c = m.elevation, m.confidence
+    obs = np.isfinite(e) & (c > min_conf)
+    k = max(3, int(round(footprint_m / m.res)) | 1)
+    low = minimum_filter(np.where(obs, e, np.inf), size=k, mode="constant", cval=np.inf)
+    opened = maximum_filter(np.where(np.isfinite(low), low, -np.inf), size=k, mode="constant", cval=-np.inf)
+    with np.errstate(invalid="ignore"):
+        high = obs & (e - opened > height_m)
+    return binary_opening(high, np.ones((2, 2), bool)) & obs
 
 
 def target_lattice_index(size: int, grid_res: float, lattice_res: float, pos: NDArray, yaw: float) -> tuple[NDArray, NDArray]:
@@ -86,13 +108,15 @@ def target_lattice_index(size: int, grid_res: float, lattice_res: float, pos: ND
     return np.floor(px / lattice_res).astype(np.int64), np.floor(py / lattice_res).astype(np.int64)
 
 
-def gather_map(m: LatticeMap, I: NDArray, J: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Return the map's (elevation, risk, confidence) at lattice cells (I, J); NaN outside."""
+def gather_map(m: LatticeMap, I: NDArray, J: NDArray, layer: NDArray | None = None) -> tuple[NDArray, ...]:
+    """Return the map's (elevation, risk, confidence) at lattice cells (I, J), NaN outside;
+    with ``layer`` (an array of the map's shape), that layer alone (as float, NaN outside)."""
     a, b = I - m.i0, J - m.j0
     nx, ny = m.shape
     ok = (a >= 0) & (a < nx) & (b >= 0) & (b < ny)
     a, b = np.where(ok, a, 0), np.where(ok, b, 0)
-    return tuple(np.where(ok, arr[a, b], np.nan) for arr in (m.elevation, m.risk, m.confidence))  # type: ignore[return-value]
+    layers = (m.elevation, m.risk, m.confidence) if layer is None else (layer,)
+    return tuple(np.where(ok, arr[a, b], np.nan) for arr in layers)
 
 
 class Atlas:

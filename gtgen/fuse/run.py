@@ -56,7 +56,8 @@ def sample_grids(drive: DriveStore, rng: str, size: int, res: float) -> list[Sam
 def params(cfg: GtgenConfig) -> FuseParams:
     """Return the fusion parameters of ``cfg``."""
     f = cfg.fuse
-    return FuseParams(int(round(f.window_s * 1e9)), int(round(f.past_s * 1e9)), f.min_conf, f.risk_min_conf, f.tile_cells)
+    return FuseParams(int(round(f.window_s * 1e9)), int(round(f.past_s * 1e9)), f.min_conf, f.risk_min_conf, f.tile_cells,
+                      f.elevation_rule, f.top_height_m, f.top_footprint_m)
 
 
 def _layers(f: Fused) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:

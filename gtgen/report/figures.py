@@ -56,12 +56,13 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
         if not icp.all():  # kept by odometry over set-aside tiles (dem.carry_over_m)
             ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="kept by odometry, no ICP")
             ax.legend(fontsize=8)
+        _draw_tiles(ax, ds)
         ax.set_aspect("equal")
         ax.ticklabel_format(useOffset=False, style="plain")  # whole easting / northing, not an offset
         ax.tick_params(axis="x", rotation=30)
         ax.set_xlabel("easting [m] (DEM CRS)")
         ax.set_ylabel("northing [m] (DEM CRS)")
-        ax.set_title("sample positions, colour = ICP fitness")
+        ax.set_title("sample positions, colour = ICP fitness;\nDEM tiles: measured offset dx, dy, dz +- 1 sigma [m]", fontsize=9)
         fig.colorbar(sc, ax=ax, shrink=0.8, label="ICP fitness [0..1]")
         fig.tight_layout()
         paths.append(save_figure(fig, out_dir / TRACK_PNG, overwrite))
@@ -121,3 +122,35 @@ def signal_figure(ds: DatasetStore, dem_cfg, out_dir: Path, overwrite: bool = Fa
     plt.close(fig)
     return p
 
+
+
+_TILE_COLOURS = {"ok": "tab:green", "corrected": "tab:orange", "set_aside": "tab:red", "unjudged": "tab:gray"}
+
+
+def _draw_tiles(ax, ds: DatasetStore) -> None:
+    """Outline every DEM tile dem-align judged (colour = status) with its measured offset
+    and uncertainty, and an arrow of the offset (x20) where it was put back."""
+    import rasterio
+    from matplotlib.patches import Rectangle
+    from rasterio.warp import transform_bounds
+
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    for entry in ds.info.drives:
+        for t in entry.tiles:
+            try:
+                with rasterio.open(t.path) as src:
+                    l, b, r, tp = transform_bounds(src.crs, entry.crs, *src.bounds)
+            except Exception:  # noqa: BLE001 - a tile moved since: the figure goes without it
+                continue
+            c = _TILE_COLOURS.get(t.status, "k")
+            ax.add_patch(Rectangle((l, b), r - l, tp - b, fill=False, ec=c, lw=1.2, ls="-" if t.status != "unjudged" else ":"))
+            if t.offset_m[0] is not None:
+                txt = "\n".join(f"{a} {o:+.2f}+-{sg:.2f}" for a, o, sg in zip("xyz", t.offset_m, t.sigma_m) if o is not None and sg is not None)
+                cx, cy = min(max((l + r) / 2, x0), x1), min(max((b + tp) / 2, y0), y1)
+                ax.text(cx, cy, f"{t.status} ({t.fits} fits)\n{txt}", fontsize=6, color=c, ha="center", va="center", clip_on=True)
+                if t.status == "corrected":
+                    ax.annotate("", xy=(cx + 20 * t.applied_m[0], cy + 20 * t.applied_m[1]), xytext=(cx, cy),
+                                arrowprops={"arrowstyle": "->", "color": c})
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)

@@ -23,6 +23,7 @@ class LabelErrors:
                     for r in RANGES}
         self.fused_vs_single = {r: {"fused_abs": 0.0, "single_abs": 0.0, "n": 0} for r in RANGES}
         self.fatal = {r: {"tp": 0, "fp": 0, "fn": 0, "n": 0} for r in RANGES}
+        self.cover = {r: {part: {"ground_abs": 0.0, "seen_abs": 0.0, "n": 0} for part in ("vegetation", "bare")} for r in RANGES}
         self.h_err: list[float] = []
         self.v_err: list[float] = []
         self.h_err_far: list[float] = []
@@ -40,7 +41,8 @@ class LabelErrors:
                 lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
             self.v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
             for r in RANGES:
-                _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r], self.fatal[r])
+                _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r], self.cover[r],
+                                   self.fatal[r])
         self.samples += len(idx)
 
     def table(self) -> dict:
@@ -67,6 +69,13 @@ class LabelErrors:
                 "recall": round(f["tp"] / (f["tp"] + f["fn"]), 4) if f["tp"] + f["fn"] else None,
                 "cells": f["n"],
             }
+            # obs PC under vegetation (what the stack sees stands > 0.3 m above the ground) and on bare ground
+            for part, c in self.cover[r].items():
+                out[r][f"obs_pc_{part}"] = {
+                    "vs_ground_mae_m": round(c["ground_abs"] / c["n"], 4) if c["n"] else None,
+                    "vs_seen_mae_m": round(c["seen_abs"] / c["n"], 4) if c["n"] else None,
+                    "cells": c["n"],
+                }
         out["dem_alignment"] = {
             "horizontal_at_vehicle_m": quantiles(np.asarray(self.h_err)),
             "horizontal_50m_ahead_m": quantiles(np.asarray(self.h_err_far)),
@@ -76,7 +85,7 @@ class LabelErrors:
 
 
 def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: int, r: str, T_odom_target: np.ndarray, acc: dict,
-                       fs: dict, fatal: dict) -> None:
+                       fs: dict, cover: dict, fatal: dict) -> None:
     """Accumulate sample ``k``'s label, risk and X-Racer errors of range ``r`` per region."""
     gr = cfg.grids.get(r)
     X, Y = grid_xy(gr.size, gr.resolution_m)
@@ -113,3 +122,9 @@ def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: 
     fs["fused_abs"] += float(np.abs(el[both] - seen[both]).sum())
     fs["single_abs"] += float(np.abs(xe[both] - seen[both]).sum())
     fs["n"] += int(both.sum())
+    pc = (reg == codes.OBS_PC) & np.isfinite(el)
+    veg = seen - ground > 0.3
+    for part, m in (("vegetation", pc & veg), ("bare", pc & ~veg)):
+        cover[part]["ground_abs"] += float(np.abs(el[m] - ground[m]).sum())
+        cover[part]["seen_abs"] += float(np.abs(el[m] - seen[m]).sum())
+        cover[part]["n"] += int(m.sum())

@@ -56,6 +56,21 @@ def _set_aside(entry: Any, crs: str) -> list[tuple[float, float, float, float]]:
     return out
 
 
+def _put_back(entry: Any, crs: str) -> list[tuple[tuple[float, float, float, float], tuple[float, float, float]]]:
+    """Return (bounds where it is read, applied offset) of the DEM tiles dem-align read put back for a drive."""
+    import rasterio
+    from rasterio.warp import transform_bounds
+
+    out = []
+    for t in entry.tiles:
+        if t.status == "corrected":
+            dx, dy, dz = t.applied_m
+            with rasterio.open(t.path) as src:
+                l, b, r, tp = transform_bounds(src.crs, crs, *src.bounds)
+            out.append(((l - dx, b - dy, r - dx, tp - dy), (dx, dy, dz)))
+    return out
+
+
 def _errors(ds: DatasetStore, cfg: GtgenConfig, truth: Any, drive: int) -> tuple[np.ndarray, ...]:
     """Return per placed sample of drive ``drive`` its reason and its errors against the
     truth: horizontal and vertical placement, mean DEM fill error, and the GNSS fit's alone
@@ -63,6 +78,7 @@ def _errors(ds: DatasetStore, cfg: GtgenConfig, truth: Any, drive: int) -> tuple
     p = _placed(ds, drive)
     entry = ds.info.drives[drive]
     aside = _set_aside(entry, entry.crs)
+    back = _put_back(entry, entry.crs)
     gs = cfg.grids.short
     X, Y = (a[::FOOTPRINT_STEP, ::FOOTPRINT_STEP] for a in grid_xy(gs.size, gs.resolution_m))
     al = entry.alignment
@@ -79,7 +95,11 @@ def _errors(ds: DatasetStore, cfg: GtgenConfig, truth: Any, drive: int) -> tuple
         used = np.ones(Eu.shape, bool)
         for l, b, r, t in aside if p["reason"][i] != codes.SUSPECT_TILE else ():
             used &= ~((Eu >= l) & (Eu < r) & (Nu > b) & (Nu <= t))
-        fill_err = (truth.dem_heights(Eu, Nu) - Tu[2, 3]) - (truth.ground(Et, Nt) - T_true[2, 3])
+        Ed, Nd, dz = Eu.copy(), Nu.copy(), np.zeros(Eu.shape)  # where the DEM heights come from: put back tiles moved
+        for (l, b, r, t), (ox, oy, oz) in back:
+            on = (Eu >= l) & (Eu < r) & (Nu > b) & (Nu <= t)
+            Ed[on], Nd[on], dz[on] = Eu[on] + ox, Nu[on] + oy, oz
+        fill_err = (truth.dem_heights(Ed, Nd) - dz - Tu[2, 3]) - (truth.ground(Et, Nt) - T_true[2, 3])
         wrong = float(np.abs(fill_err)[used].mean()) if used.any() else 0.0
         G = T_gnss @ T_odom_target
         gyaw = np.degrees(abs(np.arctan2(G[1, 0] * T_true[0, 0] - G[0, 0] * T_true[1, 0], G[0, 0] * T_true[0, 0] + G[1, 0] * T_true[1, 0])))

@@ -102,10 +102,10 @@ _FUSED: list[ArraySpec] = [
 for _r in RANGES:
     _f = "vehicle frame at t"
     _FUSED += [
-        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "mean elevation of confident observations in the window"),
+        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "elevation of the confident observations in the window: their mean (fuse.elevation_rule mean), or the mean of those off the maps' top layer (rule ground)"),
         ArraySpec(f"fused/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "max confidence in the window"),
         ArraySpec(f"fused/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "latest risk with confidence >= risk_min_conf"),
-        ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation"),
+        ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
         ArraySpec(f"fused/{_r}/last_dt_s", "float32", "(S, n, n)", "s, rel. t", _f, "NaN", "stamp of the last observation minus t"),
         ArraySpec(f"fused/{_r}/region", "uint8", "(S, n, n)", "code", _f, "0", "1 observed past/current, 2 observed future, 3 unobserved"),
         ArraySpec(f"xracer/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "X-Racer map at t (latest stamped <= t), resampled"),
@@ -129,7 +129,7 @@ for _r in RANGES:
         ArraySpec(f"labels/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "latest confident X-Racer risk in the window"),
         ArraySpec(f"labels/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "max X-Racer confidence in the window"),
         ArraySpec(f"labels/{_r}/region", "uint8", f"(S, {_n}, {_n})", "code", _TGT, "0", "0 no label, 1 observed past/current, 2 observed future, 3 unobserved (DEM)"),
-        ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation"),
+        ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
         ArraySpec(f"labels/{_r}/last_dt_s", "float32", f"(S, {_n}, {_n})", "s, rel. t", _TGT, "NaN", "time of the last observation minus t"),
         ArraySpec(f"xracer/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "X-Racer map at t (the baseline row)"),
         ArraySpec(f"xracer/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer risk at t"),
@@ -204,6 +204,24 @@ class BagRef(BaseModel):
     sha256: str
 
 
+class TileEntry(BaseModel):
+    """What dem-align measured of one DEM tile of a drive (``gtgen.dem.place.TileJudgement``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    path: str = Field(description="the tile (GDAL path)")
+    status: str = Field(description="ok (used as it is), corrected (read put back by applied_m), set_aside (not used: no consistent offset, "
+                                    "another place), unjudged (fewer than 3 fits: used as it is)")
+    fits: int = Field(description="samples whose observed ground was fitted to the tile alone")
+    offset_m: list[float | None] = Field(description="measured (dx, dy, dz) [m, working CRS]: the tile shows at (E + dx, N + dy) the ground of "
+                                                     "(E, N), dz higher; median over the fits (null: not measured)")
+    sigma_m: list[float | None] = Field(description="1-sigma uncertainty of offset_m per axis [m]: the larger of the fits' conditioning "
+                                                    "(large horizontally on smooth ground) and their spread")
+    border_step_m: float | None = Field(None, description="median height step across the tile's borders with its neighbours as read "
+                                                          "(put back if corrected) [m]; above dem.max_border_step_m it is set aside")
+    applied_m: list[float] = Field(description="the offset the tile is read put back by [m] (zeros unless corrected; an axis whose offset "
+                                               "is within its uncertainty or dem.tile_offset_min_m / _z_m stays 0)")
+
+
 class DriveEntry(BaseModel):
     """One drive of a dataset: where it came from and how it was placed in the DEM's CRS."""
 
@@ -214,6 +232,7 @@ class DriveEntry(BaseModel):
     crs: str = Field(description="working CRS of the drive's DEM placement (meta/T_crs_target, meta/crs_en_m)")
     alignment: dict[str, float | int] = Field(description="GNSS fit and vertical offset of the drive")
     suspect_tiles: list[str] = Field(default_factory=list, description="DEM tiles judged wrong against the drive's observations: not used for filling")
+    tiles: list[TileEntry] = Field(default_factory=list, description="every DEM tile the drive measured or judged: offset, uncertainty, status")
 
 
 class DatasetAttrs(BaseModel):
