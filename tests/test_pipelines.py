@@ -133,6 +133,8 @@ def test_merged_dataset_is_the_drives_end_to_end(pool_build):
     for s in sc.DATASET.arrays:
         if s.path.startswith(("rejected/", "inputs/voxel_")) or s.path == "meta/drive" or s.path.endswith(("/x_m", "/y_m")):
             continue
+        if s in sc.SCAN_ARRAYS and s.path.split("/")[1] not in g["inputs"]:
+            continue  # the N-scan input exists where the drives have raw scans
         want = np.concatenate([p[s.path][:] for p in parts])
         np.testing.assert_array_equal(g[s.path][:], want, err_msg=s.path)
     np.testing.assert_array_equal(g["meta/drive"][:], np.repeat([0, 1, 2], sizes))

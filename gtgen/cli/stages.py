@@ -30,7 +30,7 @@ def synth(
     ```
     gtgen synth drive                   # 60 s drive, ROS 2 MCAP + ROS 1 bag
     gtgen synth drive --seed 3 --duration 120 --format mcap
-    gtgen synth drive --scan-rate 2     # fewer raw lidar scans: a smaller, faster drive
+    gtgen synth drive --scan-rate 2     # fewer raw scans: a faster drive
     ```
     """
     given = {"seed": seed, "duration_s": duration, "formats": format, "scan_rate_hz": scan_rate}
