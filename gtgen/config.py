@@ -290,17 +290,15 @@ class DemConfig(_Model):
     gnss_window_s: float = Field(10.0, gt=0, le=MAX_SPAN_S, description="GNSS fixes within this of a sample's time judge its placement [s]")
     min_window_fixes: int = Field(10, ge=1, description="fewest usable fixes in the window for the GNSS check (fewer: GNSS is not consulted)")
     max_gnss_offset_m: float = Field(5.0, gt=0, description="reject a sample whose placement puts the window's fixes farther than this (median) from the track [m]")
-    judge_within_m: float = Field(20.0, gt=0, description="tiles are judged by samples whose prior is a kept placement at most this far back [m]")
+    judge_within_m: float = Field(20.0, gt=0, description="a sample whose prior is a kept placement farther back than this starts ICP with a coarse pass (odometry has drifted since) [m]")
     carry_over_m: float = Field(20.0, ge=0, description="a sample mostly over set-aside tiles is kept at the last kept placement carried by odometry (not refined by ICP, not filled from those tiles) while that placement is at most this far back; farther, or 0, it is rejected as suspect_tile [m]")
-    max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree (a shifted tile, another place, a stale survey)")
-    min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before it is judged")
+    max_tile_disagreement: float = Field(0.2, ge=0, le=1, description="a DEM tile is not used when more than this share of the observed ground cells over it disagree with it where the drive was placed (another place, a stale survey)")
+    min_tile_cells: int = Field(2000, ge=1, description="observed ground cells a tile needs before the observed ground judges it")
+    tile_border_gain: float = Field(1.5, gt=1, description="a tile is put back horizontally only when its borders continue its neighbours this many times better (height steps' spread) read at its measured offset than as it is")
     tile_offset_min_m: float = Field(0.5, ge=0, description="a tile is put back horizontally when its measured offset exceeds this and twice its uncertainty [m]")
     tile_offset_min_z_m: float = Field(0.1, ge=0, description="a tile is put back vertically when its measured offset exceeds this and twice its uncertainty [m]")
-    tile_offset_spread_m: float = Field(1.0, gt=0, description="a tile whose fits scatter more than this horizontally (1.4826 MAD) has no consistent offset: set aside [m]")
-    tile_offset_spread_z_m: float = Field(0.3, gt=0, description="a tile whose fits scatter more than this vertically (1.4826 MAD) has no consistent offset: set aside [m]")
-    max_tile_offset_m: float = Field(10.0, gt=0, description="a tile measured farther off than this horizontally is set aside rather than put back [m]")
-    max_border_step_m: float = Field(0.15, gt=0, description="a tile (put back or not) whose heights step by more than this (median) across its borders with its neighbours is set aside: another place [m]")
-
+    max_tile_offset_m: float = Field(10.0, gt=0, description="a tile's offset is searched within this horizontally (and tiles whose files leave a gap this wide still neighbour) [m]")
+    max_border_step_m: float = Field(0.15, gt=0, description="a tile whose heights step by more than this (spread about the median step) across its borders with its neighbours at every offset is set aside: another place [m]")
 
 class ReportConfig(_Model):
     """What ``gtgen report`` calls a truly bad sample on a synthetic drive with truth."""
@@ -541,14 +539,16 @@ def build_config(*layers: dict[str, Any]) -> GtgenConfig:
         raise ConfigError(_format_validation(err)) from err
 
 
-def stored_config(data: dict[str, Any], source: str) -> GtgenConfig:
+def stored_config(data: dict[str, Any], source: str, sections: tuple[str, ...] = ()) -> GtgenConfig:
     """Return the resolved config a store or checkpoint recorded (``source`` names it in
-    the error). Its ``train`` section is left out (defaults): how the maker of a dataset
-    would train says nothing about the data, and trainer keys change between versions, so
-    a dataset stays readable by a gtgen whose trainer has other keys. Raises ConfigError,
-    one line, for any other key this gtgen does not accept."""
+    the error): its ``sections`` (all but ``train`` when empty), the others at their
+    defaults. The ``train`` section is always left out: how the maker of a dataset would
+    train says nothing about the data, and trainer keys change between versions, so a
+    dataset stays readable by a gtgen whose trainer has other keys; so are the sections of
+    stages after a store's. Raises ConfigError, one line, for any key of those sections
+    this gtgen does not accept."""
     try:
-        return GtgenConfig.model_validate({k: v for k, v in data.items() if k != "train"})
+        return GtgenConfig.model_validate({k: v for k, v in data.items() if k != "train" and (not sections or k in sections)})
     except ValidationError as err:
         raise ConfigError(f"{source} records a config this gtgen does not accept ({_format_validation(err)}); "
                           "rebuild it with this version") from err

@@ -129,7 +129,9 @@ def test_decision_keeps_a_good_sample_and_rejects_constructed_bad_ones(placed, d
     cut[half] -= 1.5
     p.T_prior = T_prior.copy()
     changed = p.place(k_, t, pos, yaw, region, cut, dist)
-    assert changed.reason == codes.DEM_DISAGREES, changed.signals
+    # ICP fits the ground observed at t: half of it 1.5 m off leaves it too few inliers, or the
+    # placement it finds disagrees with the rest
+    assert changed.reason in (codes.LOW_FITNESS, codes.DEM_DISAGREES), changed.signals
 
     # a prior 6 m off (a chained placement: ICP must not silently move it that far)
     p.T_prior = T_prior.copy()

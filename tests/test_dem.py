@@ -199,13 +199,18 @@ def _altered_dem(src, dst, shifted, dxyz, wrong):
 
 def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dataset, drive_dir, drive_store, fused_store, cfg, tmp_path):
     """The drive crosses four tiles: one moved by a known (dx, dy, dz) is measured within
-    0.5 m / 0.1 m and read put back (its samples kept and filled from it), one holding
-    another place's terrain is still set aside."""
+    0.5 m / 0.1 m by its borders and read put back (its samples kept and filled from it),
+    one holding another place's terrain is still set aside; on the unaltered DEM every
+    tile is used as it is."""
     tiles = {Path(t.path).name: t for t in DatasetStore(dataset).info.drives[0].tiles}
-    fitted = sorted((t.fits, n) for n, t in tiles.items() if t.status == "ok")
-    assert len(fitted) >= 3, tiles
-    # the x..y.. part of the names: shifted, the second most fitted tile; wrong, the least
-    shifted, wrong = fitted[-2][1].split("_")[3], fitted[0][1].split("_")[3]
+    assert all(t.status == "ok" and t.applied_m == [0.0, 0.0, 0.0] for t in tiles.values()), tiles
+    seen = sorted((t.ground_cells, n) for n, t in tiles.items() if t.ground_cells)
+    assert len(seen) == 4, tiles
+    # the x..y.. part of the names (2 x 2 tiles): shifted, the second most observed tile;
+    # wrong, the tile diagonal to it, so that the shifted one keeps a neighbour on two sides
+    # (with one side only, the smooth easy world's border observes the offset to about 0.7 m)
+    shifted = seen[-2][1].split("_")[3]
+    wrong = next(n.split("_")[3] for _, n in seen if n.split("_")[3][:5] != shifted[:5] and n.split("_")[3][5:] != shifted[5:])
     dxyz = (2.0, -1.0, 0.3)  # whole pixels: a tile off the mosaic's pixel lattice is read nearest
     _altered_dem(drive_dir / "dem", tmp_path / "dem", shifted, dxyz, wrong)
     res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg)
@@ -216,5 +221,65 @@ def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dat
     np.testing.assert_allclose(s.applied_m, s.offset_m, atol=1e-3)
     w = next(t for n, t in got.items() if wrong in n)
     assert w.status == "set_aside", w
+    assert all(t.status == "ok" for n, t in got.items() if shifted not in n and wrong not in n), got  # its neighbours stay as they are
     assert any(wrong in p for p in DatasetStore(tmp_path / "ds.zarr").info.drives[0].suspect_tiles)
     assert set(res.rejected) <= {"suspect_tile"}, res.rejected  # samples mostly on the foreign tile, beyond carry_over_m
+
+
+def _write_tiles(folder, f, shifts=None, size=120, noise=0.03, seed=0):
+    """Write a 3 x 3 mosaic of ``size`` m tiles of the terrain f(E, N) (1 m pixels, EPSG:26910);
+    ``shifts``: {(col, row): (dx, dy, dz)} tiles that show at (E + dx, N + dy) the ground of
+    (E, N), dz higher (their files georeferenced off, as a TileOffset says)."""
+    folder.mkdir()
+    rng = np.random.default_rng(seed)
+    e0, n0 = 700_000.0, 3_940_000.0
+    for c in range(3):
+        for r in range(3):
+            dx, dy, dz = (shifts or {}).get((c, r), (0.0, 0.0, 0.0))
+            E = e0 + c * size + np.arange(size) + 0.5
+            N = n0 + (r + 1) * size - np.arange(size) - 0.5  # rows run south
+            z = f(E[None, :] - dx, N[:, None] - dy) + dz + rng.normal(0, noise, (size, size))
+            with rasterio.open(folder / f"t{c}{r}.tif", "w", driver="GTiff", width=size, height=size, count=1, dtype="float32",
+                               crs="EPSG:26910", transform=rasterio.transform.from_origin(e0 + c * size, n0 + (r + 1) * size, 1, 1)) as ds:
+                ds.write(z.astype(np.float32), 1)
+
+
+def _hills(E, N):
+    return 5 * np.sin(E / 37) + 3 * np.cos(N / 23) + 0.6 * np.sin((E + N) / 7) + 0.4 * np.cos((E - 2 * N) / 5)
+
+
+def _judge(folder, dc):
+    from gtgen.dem.judge import judge_borders
+
+    mosaic = DemMosaic(TileIndex.build(folder), "EPSG:26910")
+    names = [Path(p).stem for p in mosaic.tile_names]
+    return {names[i]: j for i, j in judge_borders(mosaic, list(range(len(names))), dc).items()}
+
+
+def test_border_fit_finds_a_tiles_offset_and_leaves_the_others_as_they_are(tmp_path, cfg):
+    """Oracle: the terrain is known, so is the offset of the tile written off; the borders
+    measure it (sub-pixel) and every other tile is judged fine, on hilly terrain; a tile of
+    another place is set aside, its neighbours stay as they are."""
+    _write_tiles(tmp_path / "dem", _hills, {(1, 1): (2.3, -1.6, 0.25)})
+    got = _judge(tmp_path / "dem", cfg.dem)
+    c = got["t11"]
+    assert c.status == "corrected", c
+    np.testing.assert_allclose(c.border.offset, (2.3, -1.6, 0.25), atol=0.2)
+    np.testing.assert_allclose(c.applied, c.border.offset)
+    assert c.border.step_m > 3 * c.border.best_step_m
+    assert all(j.status == "ok" for n, j in got.items() if n != "t11"), got
+
+    _write_tiles(tmp_path / "dem2", lambda E, N: np.where((E > 700_120) & (E < 700_240) & (N > 3_940_240), _hills(E, N - 500), _hills(E, N)))
+    got = _judge(tmp_path / "dem2", cfg.dem)
+    assert got["t12"].status == "set_aside", got["t12"]
+    assert all(j.status == "ok" for n, j in got.items() if n != "t12"), got
+
+
+def test_border_fit_on_smooth_terrain_reports_its_uncertainty(tmp_path, cfg):
+    """On terrain without features along the borders the offset is weakly observed: the
+    uncertainty says so, and a tile where it belongs is not moved."""
+    _write_tiles(tmp_path / "dem", lambda E, N: 0.02 * (E - 700_000) + 0.01 * (N - 3_940_000))
+    got = _judge(tmp_path / "dem", cfg.dem)
+    c = got["t11"]
+    assert c.status == "ok", c
+    assert min(c.border.sigma[:2]) > 1.0, c.border  # a plane: the borders cannot tell where along them the tile lies

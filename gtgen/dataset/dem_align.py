@@ -20,6 +20,7 @@ from gtgen import __version__, codes
 from gtgen.config import GtgenConfig
 from gtgen.dataset.assemble import Context, Kept, build_block
 from gtgen.dem.fit import PlanarFit
+from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
 from gtgen.dem.run import Alignment, align_drive
 from gtgen.dem.tiles import default_dem_dir
@@ -152,17 +153,20 @@ def drive_entry(drive_path: Path, drive: DriveStore, crs: str, al: Alignment, na
     bags = [BagRef(**b) for b in drive.bags]
     return DriveEntry(name=name or (Path(bags[0].path).stem if bags else drive_path.stem), drive_store=str(drive_path.resolve()),
                       bags=bags, crs=crs, alignment=al.placement.alignment(), suspect_tiles=suspect_tiles or [],
-                      tiles=[_tile_entry(t) for t in al.tiles if t.fits or t.status != "unjudged"])
+                      tiles=[_tile_entry(t) for t in al.tiles])
 
 
-def _tile_entry(t) -> TileEntry:
+def _tile_entry(t: TileJudgement) -> TileEntry:
     """Return the dataset's record of a tile's judgement (NaN as null)."""
-    def vals(a) -> list[float | None]:
-        return [round(float(x), 4) if np.isfinite(x) else None for x in a]
+    def num(x: float) -> float | None:
+        return round(float(x), 4) if np.isfinite(x) else None
 
-    return TileEntry(path=t.name, status=t.status, fits=t.fits, offset_m=vals(t.offset), sigma_m=vals(t.sigma),
-                     applied_m=[round(float(x), 4) for x in t.applied],
-                     border_step_m=round(float(t.border_step), 4) if np.isfinite(t.border_step) else None)
+    f = t.border
+    return TileEntry(path=t.name, status=t.status, reason=t.reason, border_pixels=f.pixels if f else 0,
+                     border_step_m=num(f.step_m) if f else None, border_step_put_back_m=num(f.best_step_m) if f else None,
+                     offset_m=[num(x) for x in f.offset] if f else [None] * 3, sigma_m=[num(x) for x in f.sigma] if f else [None] * 3,
+                     applied_m=[round(float(x), 4) for x in t.applied], ground_cells=t.ground_cells,
+                     ground_disagreement=num(t.ground_disagreement))
 
 
 def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], image_size: tuple[int, int], cameras: list[str],

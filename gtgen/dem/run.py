@@ -2,10 +2,10 @@
 decides is written by ``gtgen.dataset.dem_align``).
 
 ``align_drive`` reads like its steps: index the DEM tiles, choose the working CRS, place
-the drive (GNSS fit, coverage, vertical offset), run the ICP chain over the samples
-(measuring each tile's offset on the way), and when the drive's observations put some
-tiles elsewhere, run the chain again with those tiles put back (a consistent offset) or
-set aside (none: a tile of another place).
+the drive (GNSS fit, coverage, vertical offset), judge the tiles near it by their borders
+(``gtgen.dem.judge``: put back the shifted ones, set aside those of another place), run the
+ICP chain over the samples, and when the drive's observed ground disagrees with a tile, set
+it aside and run the chain again.
 """
 
 from __future__ import annotations
@@ -21,8 +21,9 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import gnss_lonlat
-from gtgen.dem.place import DrivePlacement, Placement, TileJudgement
-from gtgen.dem.tiles import DemMosaic, DemRef, TileIndex, TileOffset
+from gtgen.dem.judge import TileJudgement, judge_borders, judge_ground, tiles_near
+from gtgen.dem.place import DrivePlacement, Placement
+from gtgen.dem.tiles import DemMosaic, DemRef, TileIndex
 from gtgen.runtime.progress import track
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedStore
@@ -45,7 +46,7 @@ class Alignment:
     """A drive's DEM alignment: the placement (its fit, vertical offset and DEM, without
     the tiles set aside, with the shifted ones put back), every sample's outcome, the tiles
     set aside, the ICP fitness of every sample ICP ran on, how to open the same DEM
-    elsewhere, and what the first chain measured of each tile."""
+    elsewhere, and the judgement of every tile near the drive."""
 
     placement: DrivePlacement
     outcomes: list[Outcome]
@@ -61,16 +62,6 @@ class Alignment:
         return [names[i] for i in sorted(self.suspect)]
 
 
-MAX_REPLACEMENTS = 5  # chains run again at most this many times while the tiles' offsets settle
-SETTLED_M = (0.1, 0.03)  # put-back offsets that moved less than this (horizontal, vertical) [m] have settled
-
-
-def _same(a: dict[int, TileOffset], b: dict[int, TileOffset]) -> bool:
-    """Whether two sets of put-back offsets are the same tiles, settled to SETTLED_M."""
-    return a.keys() == b.keys() and all(np.hypot(a[i].dx - b[i].dx, a[i].dy - b[i].dy) < SETTLED_M[0]
-                                        and abs(a[i].dz - b[i].dz) < SETTLED_M[1] for i in a)
-
-
 @contextlib.contextmanager
 def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: GtgenConfig, cache: Path | None) -> Iterator[Alignment]:
     """Yield the DEM alignment of every fused sample of the drive (the DEM stays open
@@ -79,23 +70,26 @@ def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: Gtg
     crs = index.working_crs(*gnss_lonlat(cfg, drive.gnss()))
     placement = DrivePlacement.of_drive(cfg, drive, fused, DemMosaic(index, crs), dem_source)
     try:
+        tiles = judge_borders(placement.dem, _near(placement, drive, cfg), cfg.dem)
+        aside = frozenset(i for i, t in tiles.items() if t.status == "set_aside")
+        placement = placement.adjusted(aside, {i: t.put_back for i, t in tiles.items() if t.put_back is not None})
         outcomes, fitness = _icp_chain(drive, fused, placement)
-        record: dict[int, TileJudgement] = {}
-        for _ in range(MAX_REPLACEMENTS):
-            tiles = placement.judge_tiles()
-            record.update({t.index: t for t in tiles if t.index not in placement.dem.exclude})
-            suspect = frozenset(t.index for t in tiles if t.status == "set_aside")
-            offsets = {t.index: t.put_back for t in tiles if t.put_back is not None}
-            if suspect == placement.dem.exclude and _same(offsets, placement.dem.offsets):
-                break
-            # place the drive again with the tiles its observations put elsewhere
-            placement = placement.adjusted(suspect, offsets)
+        tiles, more = judge_ground(tiles, placement.dem.tile_names, placement.tile_cells, placement.tile_bad, cfg.dem)
+        if more:  # the drive's ground disagrees with tiles the borders kept: place it again without them
+            placement = placement.without(more)
             outcomes, fitness = _icp_chain(drive, fused, placement)
         dem = placement.dem
         ref = DemRef(str(dem_source), str(cache) if cache else None, crs, dem.exclude, tuple(sorted(dem.offsets.items())))
-        yield Alignment(placement, outcomes, dem.exclude, fitness, ref, [record[i] for i in sorted(record)])
+        yield Alignment(placement, outcomes, dem.exclude, fitness, ref, [tiles[i] for i in sorted(tiles)])
     finally:
         placement.dem.close()
+
+
+def _near(placement: DrivePlacement, drive: DriveStore, cfg: GtgenConfig) -> list[int]:
+    """Return the tiles the drive's short grids can reach, as the GNSS fit places it."""
+    en = placement.fit.apply_xy(drive.samples.pos_odom_m[:, :2])
+    half = cfg.grids.short.size * cfg.grids.short.resolution_m / 2
+    return tiles_near(placement.dem, en, half * np.sqrt(2) + cfg.dem.max_correction_m)
 
 
 def _icp_chain(drive: DriveStore, fused: FusedStore, placement: DrivePlacement) -> tuple[list[Outcome], list[float]]:

@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.dem.borders import MIN_SIDE_SHARE, BorderSide
 from gtgen.errors import DemError, InputNotFoundError
 from gtgen.runtime.output import write_json
 
@@ -228,6 +229,14 @@ class DemSource(Protocol):
     def tile_of(self, E: NDArray, N: NDArray) -> NDArray[np.int64]:
         """Return the tile index of each point, -1 outside every tile."""
 
+    def tile_bounds(self, i: int) -> tuple[float, float, float, float]:
+        """Return where tile ``i`` is read (left, bottom, right, top), put back if it is."""
+
+    def border_sides(self, i: int, max_gap_m: float, without: frozenset[int] = frozenset(),
+                     offsets: dict[int, TileOffset] | None = None) -> list[BorderSide]:
+        """Return the sides of tile ``i`` that have a neighbour (not one of ``without``; the
+        neighbours read put back by ``offsets`` too), as ``gtgen.dem.borders`` reads them."""
+
     def without(self, tiles: frozenset[int]) -> DemSource:
         """Return the same source without ``tiles`` (this one is closed)."""
 
@@ -314,6 +323,10 @@ class DemMosaic:
         b = np.array(self._bounds)
         return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
 
+    def tile_bounds(self, i: int) -> tuple[float, float, float, float]:
+        """Return where tile ``i`` is read in the working CRS (left, bottom, right, top), put back if it is."""
+        return self._bounds[i]
+
     def tile_of(self, E: NDArray, N: NDArray) -> NDArray[np.int64]:
         """Return the index of the tile each point (working CRS) lies in (the first one where
         tiles overlap), -1 outside every tile."""
@@ -392,37 +405,38 @@ class DemMosaic:
         out[out < -1e4] = np.nan  # nodata spelled as a huge negative number without a nodata tag
         return out, (float(x0), float(y0), float(res))
 
-    def border_step(self, i: int, offset: TileOffset | None) -> tuple[float, int]:
-        """Return the height step [m] across tile ``i``'s borders with its neighbours when it
-        is read put back by ``offset`` (None: as its file says), and how many border pixels
-        had a neighbour: per pixel the jump from the tile's edge pixel to the neighbour's,
-        less the mean slope of the two sides; the median per side, the least over the sides
-        with a neighbour along a quarter of them. A tile where it belongs continues its
-        neighbours' terrain (steps of the DEM's noise) on every side, even beside a tile of
-        another place; a shifted or foreign one on none."""
-        offsets = dict(self.offsets)
-        offsets.pop(i, None)
-        if offset is not None:
-            offsets[i] = offset
-        alone = DemMosaic(self.index, self.crs, frozenset(range(len(self.index.tiles))) - {i}, offsets)
-        others = DemMosaic(self.index, self.crs, self.exclude | {i}, offsets)
+    def border_sides(self, i: int, max_gap_m: float, without: frozenset[int] = frozenset(),
+                     offsets: dict[int, TileOffset] | None = None) -> list[BorderSide]:
+        """Return the sides of tile ``i`` (as its file places it) that have a neighbour along
+        a quarter of them or more (tiles set aside and ``without`` are no neighbours; the
+        others are read put back where they are, and by ``offsets`` too): the tile's two
+        edge pixel lines and the neighbours' first two beyond, within ``max_gap_m`` of its
+        edge (tiles whose files leave a gap between them)."""
+        offsets = {k: v for k, v in {**self.offsets, **(offsets or {})}.items() if k != i}
+        alone = DemMosaic(self.index, self.crs, frozenset(range(len(self.index.tiles))) - {i})
+        others = DemMosaic(self.index, self.crs, self.exclude | without | {i}, offsets)
         try:
             l, b, r, t = alone._bounds[i]
             res = self.res
-            steps = []
-            for (x0, y0, x1, y1), (nx, ny) in (((l, b, l, t), (-1, 0)), ((r, b, r, t), (1, 0)), ((l, b, r, b), (0, -1)), ((l, t, r, t), (0, 1))):
-                n = max(int(np.hypot(x1 - x0, y1 - y0) / res), 1)
-                u = (np.arange(n) + 0.5) / n
-                E, N = x0 + u * (x1 - x0), y0 + u * (y1 - y0)
-                box = (min(x0, x1) - 3 * res, min(y0, y1) - 3 * res, max(x0, x1) + 3 * res, max(y0, y1) + 3 * res)
+            far = int(np.ceil(max_gap_m / res))
+            out = []
+            for (x0, y0, x1, y1), axis, (nx, ny) in (((l, b, l, t), 1, (-1, 0)), ((r, b, r, t), 1, (1, 0)),
+                                                      ((l, b, r, b), 0, (0, -1)), ((l, t, r, t), 0, (0, 1))):
+                n = max(int(round(np.hypot(x1 - x0, y1 - y0) / res)), 1)
+                u = (np.arange(n) + 0.5) * res
+                E, N = x0 + (u if axis == 0 else 0.0), y0 + (u if axis == 1 else 0.0)
+                pad = (far + 3) * res
+                box = (min(x0, x1) - pad, min(y0, y1) - pad, max(x0, x1) + pad, max(y0, y1) + pad)
                 ga, oa = alone.read(*box)
                 go, oo = others.read(*box)
                 hi1, hi2 = (_nearest(ga, oa, E - nx * d * res, N - ny * d * res) for d in (0.5, 1.5))
-                ho1, ho2 = (_nearest(go, oo, E + nx * d * res, N + ny * d * res) for d in (0.5, 1.5))
-                st = (ho1 - hi1) - 0.5 * ((hi1 - hi2) + (ho2 - ho1))
-                steps.append((np.abs(st[np.isfinite(st)]), n))
-            sides = [float(np.median(a)) for a, n in steps if len(a) >= max(n // 4, 1)]
-            return (min(sides) if sides else float("nan")), int(sum(len(a) for a, n in steps if len(a) >= max(n // 4, 1)))
+                for k in range(far + 1):  # the neighbours' first lines beyond the edge
+                    ho1, ho2 = (_nearest(go, oo, E + nx * (d + k) * res, N + ny * (d + k) * res) for d in (0.5, 1.5))
+                    if np.isfinite(ho1 + ho2 + hi1 + hi2).mean() >= MIN_SIDE_SHARE:
+                        out.append(BorderSide(u, axis, nx + ny, hi1.astype(np.float64), hi2.astype(np.float64),
+                                              ho1.astype(np.float64), ho2.astype(np.float64), res, k * res))
+                        break
+            return out
         finally:
             alone.close()
             others.close()

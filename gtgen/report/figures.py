@@ -50,19 +50,24 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
     plt.close(fig)
     if rep.card["samples_kept"]:
         en = ds.meta("crs_en_m")
-        fig, ax = plt.subplots(figsize=(6, 6))
+        lo, hi = en.min(axis=0) - 120, en.max(axis=0) + 120  # the short grids' reach
+        w, h = hi - lo
+        fig, ax = plt.subplots(figsize=(10, float(np.clip(8.5 * h / w, 3.5, 12)) + 1))
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         icp = np.isfinite(fit)
         sc = ax.scatter(en[icp, 0], en[icp, 1], c=fit[icp], cmap="viridis", vmin=0, vmax=1, s=12)
         if not icp.all():  # kept by odometry over set-aside tiles (dem.carry_over_m)
             ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="kept by odometry, no ICP")
-            ax.legend(fontsize=8)
         _draw_tiles(ax, ds)
+        ax.legend(fontsize=8, loc="upper right")
         ax.set_aspect("equal")
         ax.ticklabel_format(useOffset=False, style="plain")  # whole easting / northing, not an offset
         ax.tick_params(axis="x", rotation=30)
         ax.set_xlabel("easting [m] (DEM CRS)")
         ax.set_ylabel("northing [m] (DEM CRS)")
-        ax.set_title("sample positions, colour = ICP fitness;\nDEM tiles: measured offset dx, dy, dz +- 1 sigma [m]", fontsize=9)
+        ax.set_title("sample positions, colour = ICP fitness; DEM tiles by status, the corrected and set-aside ones with\n"
+                     "their borders' height steps as read -> put back and measured offset dx, dy, dz +- 1 sigma [m]", fontsize=9)
         fig.colorbar(sc, ax=ax, shrink=0.8, label="ICP fitness [0..1]")
         fig.tight_layout()
         paths.append(save_figure(fig, out_dir / TRACK_PNG, overwrite))
@@ -128,14 +133,16 @@ _TILE_COLOURS = {"ok": "tab:green", "corrected": "tab:orange", "set_aside": "tab
 
 
 def _draw_tiles(ax, ds: DatasetStore) -> None:
-    """Outline every DEM tile dem-align judged (colour = status) with its measured offset
-    and uncertainty, and an arrow of the offset (x20) where it was put back."""
+    """Outline every DEM tile dem-align judged (colour = status); the corrected and set-aside
+    ones with the height steps across their borders as read and put back, their measured
+    offset and uncertainty, and for the corrected an arrow of the offset (x20)."""
     import rasterio
     from matplotlib.patches import Rectangle
     from rasterio.warp import transform_bounds
 
     x0, x1 = ax.get_xlim()
     y0, y1 = ax.get_ylim()
+    seen = set()
     for entry in ds.info.drives:
         for t in entry.tiles:
             try:
@@ -144,13 +151,18 @@ def _draw_tiles(ax, ds: DatasetStore) -> None:
             except Exception:  # noqa: BLE001 - a tile moved since: the figure goes without it
                 continue
             c = _TILE_COLOURS.get(t.status, "k")
+            seen.add(t.status)
             ax.add_patch(Rectangle((l, b), r - l, tp - b, fill=False, ec=c, lw=1.2, ls="-" if t.status != "unjudged" else ":"))
-            if t.offset_m[0] is not None:
-                txt = "\n".join(f"{a} {o:+.2f}+-{sg:.2f}" for a, o, sg in zip("xyz", t.offset_m, t.sigma_m) if o is not None and sg is not None)
+            if t.status in ("corrected", "set_aside") and t.offset_m[0] is not None:
+                txt = "\n".join(f"{a} {o:+.2f} +- {sg:.2f}" for a, o, sg in zip("xyz", t.offset_m, t.sigma_m) if o is not None and sg is not None)
+                steps = f"\nsteps {t.border_step_m:.2f} -> {t.border_step_put_back_m:.2f} m" if t.border_step_m is not None else ""
                 cx, cy = min(max((l + r) / 2, x0), x1), min(max((b + tp) / 2, y0), y1)
-                ax.text(cx, cy, f"{t.status} ({t.fits} fits)\n{txt}", fontsize=6, color=c, ha="center", va="center", clip_on=True)
+                ax.text(cx, cy, f"{t.status.replace('_', ' ')}{steps}\n{txt}", fontsize=7, color=c, ha="center", va="center", clip_on=True,
+                        bbox={"fc": "white", "ec": c, "alpha": 0.8})
                 if t.status == "corrected":
                     ax.annotate("", xy=(cx + 20 * t.applied_m[0], cy + 20 * t.applied_m[1]), xytext=(cx, cy),
                                 arrowprops={"arrowstyle": "->", "color": c})
+    for status in sorted(seen):  # legend entries
+        ax.plot([], [], color=_TILE_COLOURS.get(status, "k"), label=f"tile {status.replace('_', ' ')}")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)

@@ -118,7 +118,7 @@ class DriveStore(Store):
     @cached_property
     def config(self) -> GtgenConfig:
         """The config the drive was extracted with (its train section left out)."""
-        return stored_config(self.attrs.get("config", {}), f"drive store '{self.path}'")
+        return stored_config(self.attrs.get("config", {}), f"drive store '{self.path}'", self.fmt.config_sections)
 
     @property
     def bags(self) -> list[dict[str, str]]:

@@ -39,7 +39,7 @@ class FusedStore(Store):
     @cached_property
     def config(self) -> GtgenConfig:
         """The config the store was fused with (its train section left out)."""
-        return stored_config(self.attrs.get("config", {}), f"fused store '{self.path}'")
+        return stored_config(self.attrs.get("config", {}), f"fused store '{self.path}'", self.fmt.config_sections)
 
     @property
     def n_samples(self) -> int:

@@ -25,13 +25,17 @@ from gtgen.storage.specs import ArraySpec, find
 
 @dataclass(frozen=True)
 class StoreFormat:
-    """One kind of store: its ``store`` attribute, version, arrays, and the command that makes it."""
+    """One kind of store: its ``store`` attribute, version, arrays, the command that makes
+    it, and the sections of its recorded config that its data depend on."""
 
     kind: str
     version: int
     arrays: tuple[ArraySpec, ...]
     made_by: str
     rebuild: str = ""  # how a store of an older version is rebuilt (it may need earlier stages again)
+    # read back from its recorded config; the later stages' sections say nothing about its
+    # data, so a gtgen whose later stages have other keys still reads it
+    config_sections: tuple[str, ...] = ()
 
     def spec(self, path: str) -> ArraySpec:
         """Return the spec of array ``path``."""
@@ -92,7 +96,8 @@ _DRIVE: list[ArraySpec] = [
 ]
 
 DRIVE = StoreFormat("gtgen-drive", 6, tuple(_DRIVE), "gtgen extract BAG",
-                    "re-run 'gtgen extract BAG --overwrite' (version 6 stores the images as JPEG files and the raw lidar scans)")
+                    "re-run 'gtgen extract BAG --overwrite' (version 6 stores the images as JPEG files and the raw lidar scans)",
+                    ("grids", "topics", "extract", "mapping"))
 
 
 # -- the fused store (``gtgen fuse``) ------------------------------------------------------
@@ -112,7 +117,7 @@ for _r in RANGES:
         ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t"),
         ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t"),
     ]
-FUSED = StoreFormat("gtgen-fused", 2, tuple(_FUSED), "gtgen fuse")
+FUSED = StoreFormat("gtgen-fused", 2, tuple(_FUSED), "gtgen fuse", config_sections=("grids", "topics", "extract", "mapping", "fuse"))
 
 
 # -- the dataset (``gtgen dem-align``, ``gtgen build``) ---------------------------------
@@ -184,9 +189,9 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 6, tuple(_DATASET + COORDS), "gtgen dem-align",
+DATASET = StoreFormat("gtgen-dataset", 7, tuple(_DATASET + COORDS), "gtgen dem-align",
                       "rebuild it from its bags with 'gtgen build DRIVES... -o OUT --overwrite' (or gtgen extract, fuse and "
-                      "dem-align, each with --overwrite): version 6 stores the images as JPEG files, has a test split and the N-scan input")
+                      "dem-align, each with --overwrite): version 7 records each DEM tile's judgement by its borders")
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
 # are there only when the drives have raw scans
@@ -205,21 +210,26 @@ class BagRef(BaseModel):
 
 
 class TileEntry(BaseModel):
-    """What dem-align measured of one DEM tile of a drive (``gtgen.dem.place.TileJudgement``)."""
+    """What dem-align measured and decided of one DEM tile near a drive (``gtgen.dem.judge.TileJudgement``)."""
 
     model_config = ConfigDict(extra="forbid")
     path: str = Field(description="the tile (GDAL path)")
-    status: str = Field(description="ok (used as it is), corrected (read put back by applied_m), set_aside (not used: no consistent offset, "
-                                    "another place), unjudged (fewer than 3 fits: used as it is)")
-    fits: int = Field(description="samples whose observed ground was fitted to the tile alone")
-    offset_m: list[float | None] = Field(description="measured (dx, dy, dz) [m, working CRS]: the tile shows at (E + dx, N + dy) the ground of "
-                                                     "(E, N), dz higher; median over the fits (null: not measured)")
-    sigma_m: list[float | None] = Field(description="1-sigma uncertainty of offset_m per axis [m]: the larger of the fits' conditioning "
-                                                    "(large horizontally on smooth ground) and their spread")
-    border_step_m: float | None = Field(None, description="median height step across the tile's borders with its neighbours as read "
-                                                          "(put back if corrected) [m]; above dem.max_border_step_m it is set aside")
-    applied_m: list[float] = Field(description="the offset the tile is read put back by [m] (zeros unless corrected; an axis whose offset "
-                                               "is within its uncertainty or dem.tile_offset_min_m / _z_m stays 0)")
+    status: str = Field(description="ok (used as it is), corrected (read put back by applied_m), set_aside (not used), unjudged (no "
+                                    "neighbour to judge it by: used as it is unless its observed ground disagrees)")
+    reason: str = Field("", description="why it was corrected, set aside or left unjudged")
+    border_pixels: int = Field(0, description="pixels along its borders with a neighbour (0: none; both horizontal axes are observed "
+                                              "only with neighbours on two sides at right angles)")
+    border_step_m: float | None = Field(None, description="spread of the height steps across its borders with its neighbours as its file "
+                                                          "places it [m] (the DEM's noise where it belongs)")
+    border_step_put_back_m: float | None = Field(None, description="the same, read put back by offset_m [m]; above dem.max_border_step_m "
+                                                                   "no offset continues its neighbours and it is set aside")
+    offset_m: list[float | None] = Field(description="(dx, dy, dz) that makes it continue its neighbours best [m, working CRS]: the tile "
+                                                     "shows at (E + dx, N + dy) the ground of (E, N), dz higher (null: not measured)")
+    sigma_m: list[float | None] = Field(description="1-sigma uncertainty of offset_m per axis [m]: half the reach of the offsets that "
+                                                    "continue the neighbours as well within the steps' noise (large along smooth borders)")
+    applied_m: list[float] = Field(description="the offset the tile is read put back by [m] (zeros unless corrected)")
+    ground_cells: int = Field(0, description="observed ground cells over it at the drive's placements")
+    ground_disagreement: float | None = Field(None, description="share of those that disagree with it by more than dem.disagreement_m")
 
 
 class DriveEntry(BaseModel):
