@@ -1,10 +1,28 @@
-"""Throughput of extract + fuse + dem-align at paper grid sizes, per stage per sample."""
+"""Throughput of extract + fuse + dem-align at paper grid sizes, per stage per sample, and
+the share of dem-align that judging the DEM tiles by their borders takes."""
 
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import zarr
 
 from _common import drive, fresh_workspace, header, run_measured
+
+# the DEM tiles of a drive judged by their borders (every tile of its folder): seconds, tiles
+JUDGE = """
+import sys, time
+from pathlib import Path
+from gtgen.config import load_config
+from gtgen.dem.judge import judge_borders
+from gtgen.dem.tiles import DemMosaic, TileIndex
+index = TileIndex.build(Path(sys.argv[1]))
+mosaic = DemMosaic(index, sys.argv[2])
+t = time.perf_counter()
+judge_borders(mosaic, list(range(len(index.tiles))), load_config().dem)
+print(time.perf_counter() - t, len(index.tiles))
+"""
 
 if __name__ == "__main__":
     header("bench/pipeline.py")
@@ -19,3 +37,7 @@ if __name__ == "__main__":
     print(f"{n} samples from a 120 s drive; total {total:.1f} s = {n / total:.2f} samples/s (goal >= 4; 14.2k samples in {14200 / (n / total) / 3600:.2f} h)")
     for k, v in t.items():
         print(f"  {k}: {v:.1f} s = {1000 * v / n:.0f} ms/sample")
+    out = subprocess.run([sys.executable, "-c", JUDGE, str(d / "dem"), "EPSG:26910"], capture_output=True, text=True, check=True).stdout.split()
+    dt, tiles = float(out[0]), int(out[1])
+    print(f"  of dem-align: the DEM tiles judged by their borders, {tiles} tiles in {dt:.1f} s ({1000 * dt / tiles:.0f} ms a tile) = "
+          f"{100 * dt / t['dem-align']:.1f} % of dem-align")

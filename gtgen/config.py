@@ -250,7 +250,7 @@ class ExtractConfig(_Model):
     image_width: int = Field(640, ge=8, le=4096, description="stored image width at most: the source is scaled to fit image_width x image_height, aspect kept, never upscaled [px]")
     image_height: int = Field(396, ge=8, le=4096, description="stored image height at most [px]")
     jpeg_quality: int = Field(90, ge=1, le=95, description="JPEG quality of stored images that are resized or rectified (the camera's own JPEG is kept as it is otherwise)")
-    scan_skew_s: float = Field(0.2, ge=0, le=MAX_SPAN_S, description="max scan-to-sample skew of a sample's newest raw scan per lidar [s]")
+    scan_skew_s: float = Field(0.2, ge=0, le=MAX_SPAN_S, description="max scan-to-sample skew of a sample's newest raw scan per lidar [s] (or two of the lidar's periods, if that is longer)")
     max_scan_points: int = Field(131072, ge=1, le=10_000_000, description="points stored per raw scan (the nearest kept beyond)")
     record_skew_warn_s: float = Field(1.0, ge=0, le=MAX_SPAN_S, description="report header vs record time differences above this [s]")
 

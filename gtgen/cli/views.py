@@ -43,6 +43,8 @@ def report(
         rows += [(f"  drive {d}", ", ".join(f"{k} {v}" for k, v in n.items() if v)) for d, n in c["split_by_drive"].items()]
     if c.get("image_bytes_per_sample"):
         rows.append(("images per sample (4 JPEG)", f"{c['image_bytes_per_sample'] / 1e3:.1f} kB"))
+    if c.get("scan_input"):
+        rows.append(("N-scan input (points: newest scan, all)", ", ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in c["scan_input"].items())))
     for r, cov in c.get("coverage", {}).items():
         rows.append((f"coverage {r}", ", ".join(f"{k} {100 * v:.1f}%" for k, v in cov.items())))
     for r, share in c.get("region_share_pct", {}).items():

@@ -1,7 +1,7 @@
 """The paper's N-scan input of a sample (Tab. III): its last scans, accumulated and voxel-filtered.
 
 Per lidar, a sample's scans are its newest (the latest stamped at or before t, at most
-``extract.scan_skew_s`` before it), then repeatedly the latest stamped where the travel
+``extract.scan_skew_s`` or two of the lidar's periods before it: ``newest_within_ns``), then repeatedly the latest stamped where the travel
 was at least ``shards.scan_travel_m`` less than at the previous one chosen, up to
 ``shards.max_scans``; age a is the a-th of that chain. Their points are put in the
 sample's target frame, kept within the short grid, ordered by (age, lidar, point), and
@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.config import GtgenConfig
-from gtgen.extract.lidar import expand
+from gtgen.extract.lidar import expand, newest_within_ns
 from gtgen.geometry import yaw_transform
 from gtgen.storage.drive import DriveStore, Scans
 
@@ -31,7 +31,7 @@ def chains(scans: Scans, t_ns: NDArray[np.int64], n: int, travel_m: float, skew_
         idx = np.nonzero(scans.lidar == lid)[0]
         t, d = scans.t_ns[idx], scans.distance_m[idx]
         cur = np.searchsorted(t, t_ns, side="right") - 1
-        ok = (cur >= 0) & (t_ns - t[np.maximum(cur, 0)] <= skew_ns)
+        ok = (cur >= 0) & (t_ns - t[np.maximum(cur, 0)] <= newest_within_ns(t, skew_ns))
         for a in range(n):  # a loop over ages (a few), vectorised over samples
             out[ok, a, j] = idx[cur[ok]]
             nxt = np.minimum(np.searchsorted(d, d[np.maximum(cur, 0)] - travel_m, side="right") - 1, cur - 1)

@@ -70,10 +70,18 @@ def deskew(pts: NDArray[np.float32], dt_s: NDArray[np.float32], tf: TfBuffer, od
     return (np.einsum("nij,nj->ni", R, pts.astype(np.float64)) + tr).astype(np.float32)
 
 
+def newest_within_ns(t: NDArray[np.int64], skew_ns: int) -> int:
+    """Return how old a sample's newest scan of one lidar (stamps ``t``, sorted) may be:
+    ``extract.scan_skew_s``, or two of the lidar's periods (median) if that is longer, so
+    that a lidar slower than the skew still gives every sample its latest scan while a
+    lidar that stopped gives none."""
+    return max(int(skew_ns), int(2 * np.median(np.diff(t)))) if len(t) > 1 else int(skew_ns)
+
+
 def kept_scans(t: NDArray[np.int64], dist: NDArray[np.float64], sample_t: NDArray[np.int64], travel_m: float,
                skew_ns: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Return (indices into ``t`` of the scans one lidar keeps, sorted; each sample's newest
-    scan as an index into them, -1 where none is within ``skew_ns`` before it).
+    scan as an index into them, -1 where none is within ``newest_within_ns`` before it).
 
     ``t`` are the lidar's usable stamps, sorted, ``dist`` the travel at each [m]. Kept: the
     first scan, every scan at least ``travel_m`` after the previous one kept, and each
@@ -85,7 +93,7 @@ def kept_scans(t: NDArray[np.int64], dist: NDArray[np.float64], sample_t: NDArra
             keep[i] = True
             last = d
     newest = np.searchsorted(t, sample_t, side="right") - 1
-    ok = (newest >= 0) & (sample_t - t[np.maximum(newest, 0)] <= skew_ns) if len(t) else np.zeros(len(sample_t), bool)
+    ok = (newest >= 0) & (sample_t - t[np.maximum(newest, 0)] <= newest_within_ns(t, skew_ns)) if len(t) else np.zeros(len(sample_t), bool)
     keep[newest[ok]] = True
     idx = np.nonzero(keep)[0]
     return idx, np.where(ok, np.searchsorted(idx, np.maximum(newest, 0)), -1)

@@ -70,6 +70,7 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
         "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
         "split_by_drive": _split_by_drive(ds, split),
         "image_bytes_per_sample": _image_bytes(ds),
+        "scan_input": _scan_input(ds),
         "coverage": {r: {k: round(float(v), 4) for k, v in _coverage(ds, r, idx).items()} for r in RANGES} if S else {},
         "icp_fitness": quantiles(np.concatenate([fit, rfit[np.isfinite(rfit)]])),
         "icp_rmse_m": quantiles(ds.meta("icp_rmse_m")),
@@ -100,6 +101,17 @@ def _split_by_drive(ds: DatasetStore, split: np.ndarray) -> dict[str, dict[str, 
     drive = ds.meta("drive")
     return {entry.name: {name: int(((drive == d) & (split == code)).sum()) for code, name in codes.SPLITS.items()}
             for d, entry in enumerate(ds.info.drives)}
+
+
+def _scan_input(ds: DatasetStore) -> dict[str, float]:
+    """Return what the N-scan input holds: the samples with no scan point, and the median
+    points of a sample's 1 and N newest scans (empty without raw scans)."""
+    if not ds.has_scans or not ds.n_samples:
+        return {}
+    _, counts = ds.scan_input()
+    c = np.stack([counts[k] for k in range(ds.n_samples)])
+    return {"samples_without_scans": int((c[:, -1] == 0).sum()), "median_points_newest": float(np.median(c[:, 0])),
+            f"median_points_{c.shape[1]}_scans": float(np.median(c[:, -1]))}
 
 
 def _image_bytes(ds: DatasetStore) -> float:
