@@ -18,6 +18,7 @@ from __future__ import annotations
 import heapq
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,10 +75,11 @@ class Targets:
 
 @dataclass
 class SegmentOut:
-    """What a segment made: the maps' centres in odom and the voxel maps' points."""
+    """What a segment made (its maps and voxel maps are in the store already): the maps'
+    centres in odom and the voxel maps' point counts."""
 
     centers: dict[tuple[str, int], NDArray] = field(default_factory=dict)
-    voxels: dict[int, NDArray] = field(default_factory=dict)
+    voxels: dict[int, int] = field(default_factory=dict)
     sweeps: int = 0  # scans added
     skipped: int = 0  # scans no pose or transform placed (or stamped too far out of order)
 
@@ -105,14 +107,11 @@ def map_pass(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, topics: list[s
             jobs.append((paths, cfg, topics, str(w.path), tg, tf, track))
     centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in ranges}
     n_points = np.zeros(len(plan.voxel_map_t), np.int64)
-    vox = w.voxels() if "voxel_map" in made else None
-    P = cfg.shards.max_voxel_points
     for out in pool.map(map_segment, jobs, "extract: mapping the lidar"):
         for (r, k), c in out.centers.items():
             centers[r][k] = c
-        for v, pts in out.voxels.items():
-            n_points[v] = len(pts)
-            vox[v] = padded(pts, P)  # type: ignore[index]
+        for v, n in out.voxels.items():
+            n_points[v] = n
     return centers, n_points
 
 
@@ -121,11 +120,13 @@ def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: s
     """Map one segment (a process-pool job): feed the scans from ``memory_s`` before its first
     target to its last, in stamp order, and make each target once the scans pass it (a map
     at t holds the scans stamped up to t). Scans within ``BATCH_NS`` go in together, each put
-    in odom with its own pose."""
+    in odom with its own pose. Each map and voxel map goes into the store as it is made (a
+    row each), so a segment's memory does not grow with its length."""
     times = tg.times()
     mapper = Mapper(cfg, tuple(tg.maps), voxels=tg.voxels is not None)
     w = DriveWriter.reopen(Path(store))
     arrays = {r: {name: w.map_layer(r, name) for name in MAP_LAYERS} for r in tg.maps}
+    vox = w.voxels() if tg.voxels is not None else None
     out = SegmentOut()
     start = int(times[0] - cfg.mapping.memory_s * 1e9 - REORDER_NS)
     todo = list(times)
@@ -143,7 +144,7 @@ def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: s
         if todo and todo[0] < t:
             flush()
             while todo and todo[0] < t:
-                _make(todo.pop(0), mapper, tg, arrays, cfg, track, out)
+                _make(todo.pop(0), mapper, tg, arrays, vox, cfg, track, out)
         if batch.pts and t - batch.t0 >= BATCH_NS:
             flush()
         if t < max(mapper.t_ns, batch.t):
@@ -170,7 +171,7 @@ def map_segment(paths: list[Path], cfg: GtgenConfig, topics: list[str], store: s
         feed(heapq.heappop(heap))
     flush()
     while todo:
-        _make(todo.pop(0), mapper, tg, arrays, cfg, track, out)
+        _make(todo.pop(0), mapper, tg, arrays, vox, cfg, track, out)
     return out
 
 
@@ -207,8 +208,9 @@ def _add(batch: _Batch, mapper: Mapper, cfg: GtgenConfig, tf: TfBuffer, track: P
     out.sweeps += 1
 
 
-def _make(t: int, mapper: Mapper, tg: Targets, arrays: dict, cfg: GtgenConfig, track: PoseTrack, out: SegmentOut) -> None:
-    """Make every target stamped ``t``: maps centred on the vehicle there, the voxel map."""
+def _make(t: int, mapper: Mapper, tg: Targets, arrays: dict, vox: Any, cfg: GtgenConfig, track: PoseTrack, out: SegmentOut) -> None:
+    """Make every target stamped ``t`` into the store (``arrays``: the map layers per range,
+    ``vox``: the voxel clouds): maps centred on the vehicle there, the voxel map."""
     center = track.interpolate(np.array([t]), strict=False)[0][0, :2]
     for r, (k, ts) in tg.maps.items():
         for k_i in k[ts == t]:
@@ -219,4 +221,6 @@ def _make(t: int, mapper: Mapper, tg: Targets, arrays: dict, cfg: GtgenConfig, t
     if tg.voxels is not None:
         k, ts = tg.voxels
         for v in k[ts == t]:
-            out.voxels[int(v)] = thinned_points(mapper.voxel_points(t, center), cfg.shards.max_voxel_points, cfg.shards.far_voxel_m)
+            pts = thinned_points(mapper.voxel_points(t, center), cfg.shards.max_voxel_points, cfg.shards.far_voxel_m)
+            vox[int(v)] = padded(pts, cfg.shards.max_voxel_points)
+            out.voxels[int(v)] = len(pts)
