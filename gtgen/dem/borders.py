@@ -120,11 +120,12 @@ def _steps(sides: list[BorderSide], dx: NDArray, dy: float) -> tuple[NDArray, ND
 
 def _smooth(v: NDArray) -> NDArray:
     """Return ``v`` (rows of values along a side) averaged over SLOPE_PIXELS along it, NaN-aware."""
-    k = np.ones(SLOPE_PIXELS)
+    from scipy.ndimage import uniform_filter1d
+
     ok = np.isfinite(v)
-    num = np.apply_along_axis(lambda r: np.convolve(r, k, "same"), 1, np.where(ok, v, 0.0))
-    den = np.apply_along_axis(lambda r: np.convolve(r, k, "same"), 1, ok.astype(np.float64))
-    return np.where(ok, num / np.maximum(den, 1), np.nan)
+    num = uniform_filter1d(np.where(ok, v, 0.0), SLOPE_PIXELS, axis=1, mode="constant")
+    den = uniform_filter1d(ok.astype(np.float64), SLOPE_PIXELS, axis=1, mode="constant")
+    return np.where(ok, num / np.maximum(den, 1e-9), np.nan)
 
 
 def _spread(steps: tuple[NDArray, NDArray]) -> tuple[NDArray, NDArray]:
