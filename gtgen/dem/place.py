@@ -110,7 +110,7 @@ class DrivePlacement:
         self.kept_at_m = 0.0  # odometry distance of the last kept sample
         self.gnss_t, self.gnss_xy = gnss  # (t_ns, (odom x, y, CRS E, N)) of the usable fixes
         n = len(dem.tile_names)
-        # per tile: observed ground cells over it at the samples' placements, and those that disagree with it
+        # per tile: observed ground cells over it at the kept placements, and those that disagree with it
         self.tile_cells, self.tile_bad = np.zeros(n, np.int64), np.zeros(n, np.int64)
 
     @classmethod
