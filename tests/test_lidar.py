@@ -5,7 +5,6 @@ accumulation, and a training step on it."""
 from __future__ import annotations
 
 import statistics
-
 import struct
 from pathlib import Path
 

@@ -3,7 +3,8 @@
 Risk is geometric, as elevation_mapping's traversability filters and X-Racer-style stacks
 compute it, from four ratios to their limits (``mapping.*``): the ground's step within
 ``neighbourhood_m``, its slope, its roughness (std within ``neighbourhood_m``) and the
-height of what stands on it (top - ground) against the ground clearance. Risk is half the
+height of what stands on it (top - ground, less what the local slope spans across the
+cell) against the ground clearance. Risk is half the
 largest ratio, clipped to [0, 1]: 0.5, the fatal threshold of ``train.fatal_risk``, is a
 limit reached. Confidence is density x range x age, each in [0, 1].
 """
@@ -38,11 +39,14 @@ def neighbourhood_cells(cfg: MappingConfig, res: float) -> int:
 
 
 def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
-    """Return the step [m], slope [deg] and roughness [m] of ``ground`` (NaN: no ground) per
-    cell, from the plane fitted (least squares) through the k x k neighbourhood's cells that
-    have ground: slope is the plane's, roughness the std of the cells about it, and step the
-    largest jump from the cell to a neighbour beyond what the plane's slope explains. So a
-    smooth slope is slope, not step or roughness, at any cell size. NaN where no ground.
+    """Return the step [m], slope [deg], roughness [m] and rise [m] of ``ground`` (NaN: no
+    ground) per cell, from the plane fitted (least squares) through the k x k
+    neighbourhood's cells that have ground: slope is the plane's, roughness the std of the
+    cells about it, step the largest jump from the cell to a neighbour beyond what the
+    plane's slope explains, and rise what the plane climbs across one cell (corner to
+    corner), which the points of a cell span on a slope without anything standing on it.
+    So a smooth slope is slope, not step, roughness or height, at any cell size. NaN where
+    no ground.
 
     The sums of the fit are separable filters and the 3 x 3 normal equations are solved by
     Cramer's rule, cell-wise (``geometry_naive`` solves them one by one: the oracle)."""
@@ -85,14 +89,16 @@ def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
             jump = np.abs(gn - g32 - (bx32 * di + by32 * dj))
             np.maximum(step, np.where(vn, jump, 0.0), out=step)
     nan = ~valid
-    return {"step": np.where(nan, np.nan, step), "slope": np.where(nan, np.nan, slope), "roughness": np.where(nan, np.nan, rough)}
+    rise = np.where(fit, (np.abs(bx) + np.abs(by)) * res, 0.0)
+    return {"step": np.where(nan, np.nan, step), "slope": np.where(nan, np.nan, slope), "roughness": np.where(nan, np.nan, rough),
+            "rise": np.where(nan, np.nan, rise)}
 
 
 def geometry_naive(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
     """``geometry`` cell by cell: the plane fitted with lstsq on each neighbourhood (the test oracle)."""
     H, W = ground.shape
     c = k // 2
-    out = {n: np.full((H, W), np.nan) for n in ("step", "slope", "roughness")}
+    out = {n: np.full((H, W), np.nan) for n in ("step", "slope", "roughness", "rise")}
     for i in range(H):
         for j in range(W):
             if not np.isfinite(ground[i, j]):
@@ -105,6 +111,7 @@ def geometry_naive(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
                 a0, bx, by = np.linalg.lstsq(A, P[:, 2], rcond=None)[0]
             else:
                 a0, bx, by = P[:, 2].mean(), 0.0, 0.0
+            out["rise"][i, j] = (abs(bx) + abs(by)) * res
             out["roughness"][i, j] = np.sqrt(max(np.mean((P[:, 2] - (a0 + bx * P[:, 0] + by * P[:, 1])) ** 2), 0.0))
             out["slope"][i, j] = np.degrees(np.arctan(np.hypot(bx, by)))
             out["step"][i, j] = max([abs(z - ground[i, j] - (bx * x + by * y)) for x, y, z in P if (x, y) != (0, 0)], default=0.0)
@@ -115,7 +122,8 @@ def layers(cells: dict[str, NDArray], cfg: MappingConfig, res: float, center: ND
     """Return the layers of a crop of cell statistics (``RollingCells.crop``)."""
     ground, top = cells["ground"], cells["top"]
     geo = geometry(ground, res, neighbourhood_cells(cfg, res))
-    height = np.where(np.isfinite(ground), top - ground, np.nan)
+    # what stands on the ground: the cell's top above its ground, less what a slope spans across the cell
+    height = np.where(np.isfinite(ground), np.maximum(top - ground - geo["rise"], 0.0), np.nan)
     ratio = np.fmax.reduce([geo["step"] / cfg.max_step_m, geo["slope"] / cfg.max_slope_deg,
                             geo["roughness"] / cfg.max_roughness_m, height / cfg.clearance_m])
     risk = np.clip(0.5 * ratio, 0.0, 1.0)
