@@ -169,6 +169,9 @@ def dem_align(
     ]
     rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
     rows += [(f"  split {k}", v) for k, v in res.split_counts.items()]
+    if res.n_kept and not res.split_counts.get("val"):
+        rows.append(("  split val", f"0: no {cfg.shards.split_block_m:g} m block (shards.split_block_m) of this drive fell in val; "
+                                    "train will not validate: a smaller block, or more drives, gives it one"))
     rows += [
         ("working CRS", res.crs),
         ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
