@@ -235,3 +235,23 @@ def test_experiments_seeds_give_mean_and_spread(with_val, tmp_path):
     assert cell["mean"] == pytest.approx((a + b) / 2) and cell["spread"] == pytest.approx(abs(a - b) / np.sqrt(2))
     assert mean_and_spread(evs)["elevation"]["short"]["model"]["total"]["mae_m"] == pytest.approx(cell["mean"])
     assert res.notes[-1].startswith("skipped N=1, N=2, N=5, N=10: the dataset holds no raw lidar scans")
+
+
+def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
+    """A session cut short holds whole tables of the seeds it finished."""
+    from gtgen.train import experiments as ex
+
+    order = []
+
+    def fake_run_one(dataset, folder, cfg, split, baselines, say):
+        order.append(folder.name)
+        return {"train_s": 0.0}, True
+
+    monkeypatch.setattr(ex, "_run_one", fake_run_one)
+    plan = ex._plan(False, ex.parse_tables("i,iv"))
+    base = ex.load_config(None, ex.preset_overrides("tiny"), {})
+    res = ex.ExperimentsResult(tmp_path, tmp_path / "e.json", tmp_path / "e.md", "val", [], [])
+    ex._train_and_evaluate(tmp_path, tmp_path, plan, base, 2, 3, "val", None, None, res)
+    seeds = [int(name.rsplit("seed", 1)[1]) for name in order]
+    assert seeds == sorted(seeds) and len(order) == 3 * len(plan.needed)
+    assert order[: len(plan.needed)] == [f"{name}-seed0" for name in plan.needed]

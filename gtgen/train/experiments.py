@@ -273,9 +273,10 @@ def _folder(out: Path, run: str, seed: int) -> Path:
 def _train_and_evaluate(dataset: Path, out: Path, plan: _Plan, base: GtgenConfig, steps: int, seeds: int, split: str,
                         device: str | None, progress: Callable[[str], None] | None, res: ExperimentsResult) -> dict[str, list[dict]]:
     """Return the evaluations of every needed run per seed, training what is not done;
-    record in ``res`` what was trained and what was found done."""
+    record in ``res`` what was trained and what was found done. Every run of one seed comes
+    before the next seed, so a session cut short holds whole tables of the seeds it finished."""
     evals: dict[str, list[dict]] = {}
-    todo = [(name, base.train.seed + k) for name in plan.needed for k in range(seeds)]
+    todo = [(name, base.train.seed + k) for k in range(seeds) for name in plan.needed]
     for i, (name, seed) in enumerate(todo, 1):
         run = plan.runs[name]
         folder = _folder(out, name, seed)
