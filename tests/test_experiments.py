@@ -225,9 +225,13 @@ def test_experiments_seeds_give_mean_and_spread(with_val, tmp_path):
     lines = []
     # 2 steps: a schedule of one step has a learning rate of almost 0, and the fresh
     # elevation heads start at 0 whatever the seed
+    # one seed, then two into the same folder: the second run reads seed 0 from disk and
+    # averages it with the fresh seed 1
+    run_experiments(with_val, tmp_path / "exp", seeds=1, steps=2, tables=parse_tables("iii"), config=c, progress=lines.append)
     res = run_experiments(with_val, tmp_path / "exp", seeds=2, steps=2, tables=parse_tables("iii"), config=c, progress=lines.append)
-    assert lines == [f"[{k + 1}/2] ours (seed {k}, 2 steps; cameras + points + raw elevation, both ranges): {what}"
-                     for k in (0, 1) for what in ("training", "evaluating on val")]
+    head = "ours (seed {k}, 2 steps; cameras + points + raw elevation, both ranges)"
+    assert lines == [f"[1/1] {head.format(k=0)}: training", f"[1/1] {head.format(k=0)}: evaluating on val",
+                     f"[1/2] {head.format(k=0)}: done", f"[2/2] {head.format(k=1)}: training", f"[2/2] {head.format(k=1)}: evaluating on val"]
     evs = [json.loads((tmp_path / "exp" / "runs" / f"ours-seed{k}" / "eval_val.json").read_text()) for k in (0, 1)]
     a, b = (e["elevation"]["short"]["model"]["total"]["mae_m"] for e in evs)
     assert a != b  # the seeds train different networks

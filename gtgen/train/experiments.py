@@ -336,6 +336,7 @@ def _run_one(dataset: Path, folder: Path, cfg: GtgenConfig, split: str, baseline
         train(dataset, folder, cfg, resume=step > 0)
     elif done.is_file():
         ev = json.loads(done.read_text())
+        ev.pop("written_by", None)  # the file's signature, not a result: the fresh evaluations of other seeds have none
         if ev.get("step") == tc.steps:
             say("done")
             return ev, False
