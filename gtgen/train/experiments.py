@@ -413,7 +413,7 @@ def cell_texts(table: dict) -> tuple[list[str], list[list[str]]]:
         texts = [row["label"], row["inputs"]]
         for c, digits in zip(row["cells"], table["digits"]):
             ours = _number(c["mean"], digits, pct)
-            if c["spread"] is not None and c["mean"] is not None:
+            if c["spread"] and c["mean"] is not None:  # none for one seed; 0 for what every seed shares (baselines, shares)
                 ours += f" ± {_number(c['spread'], digits, pct)}"
             if c["coverage_pct"] is not None and c["mean"] is not None and c["coverage_pct"] < 99.95:
                 ours += f" ({c['coverage_pct']:.0f} %)"
@@ -429,8 +429,8 @@ def markdown(tables: list[dict], summary: dict) -> str:
     """Return the tables as Markdown, with what they were computed on."""
     lines = [f"<!-- {signature()} -->", "# The paper's experiments on this dataset", "",
              f"Dataset `{summary['dataset']}`, evaluated on its {summary['split']} split; preset {summary['preset']}, "
-             f"{summary['steps']} steps per run, {summary['seeds']} seed(s) (ours: mean ± spread over the seeds; "
-             "paper: the paper's numbers).", ""]
+             f"{summary['steps']} steps per run, {summary['seeds']} seed(s) (ours: mean ± spread over the seeds, "
+             "no spread where every seed gives the same: the baselines, the shares; paper: the paper's numbers).", ""]
     lines += [f"- {n}" for n in summary["notes"]] + ([""] if summary["notes"] else [])
     for t in tables:
         head, rows = cell_texts(t)
