@@ -413,7 +413,8 @@ def cell_texts(table: dict) -> tuple[list[str], list[list[str]]]:
         texts = [row["label"], row["inputs"]]
         for c, digits in zip(row["cells"], table["digits"]):
             ours = _number(c["mean"], digits, pct)
-            if c["spread"] and c["mean"] is not None:  # none for one seed; 0 for what every seed shares (baselines, shares)
+            # none for one seed; 0 (to float rounding) for what every seed shares: baselines, shares
+            if c["spread"] is not None and c["mean"] is not None and c["spread"] > 1e-6 * abs(c["mean"]):
                 ours += f" ± {_number(c['spread'], digits, pct)}"
             if c["coverage_pct"] is not None and c["mean"] is not None and c["coverage_pct"] < 99.95:
                 ours += f" ({c['coverage_pct']:.0f} %)"
