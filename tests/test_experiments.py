@@ -263,3 +263,16 @@ def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
     seeds = [int(name.rsplit("seed", 1)[1]) for name in order]
     assert seeds == sorted(seeds) and len(order) == 3 * len(plan.needed)
     assert order[: len(plan.needed)] == [f"{name}-seed0" for name in plan.needed]
+
+
+def test_experiments_refuse_a_file_and_a_users_tables_before_training(with_val, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    p = _experiments(with_val, afile, "--steps", "2", "--tables", "III")
+    assert p.returncode == 1 and f"experiments folder '{afile}' is a file" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / "experiments.md").write_text("my notes")
+    p = _experiments(with_val, out, "--steps", "2", "--tables", "III")
+    assert p.returncode == 1 and "experiments.md' is an existing file that gtgen did not write" in p.stderr
+    assert (out / "experiments.md").read_text() == "my notes" and not (out / "runs").exists() and afile.read_text() == "mine"
