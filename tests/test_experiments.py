@@ -276,3 +276,11 @@ def test_experiments_refuse_a_file_and_a_users_tables_before_training(with_val, 
     p = _experiments(with_val, out, "--steps", "2", "--tables", "III")
     assert p.returncode == 1 and "experiments.md' is an existing file that gtgen did not write" in p.stderr
     assert (out / "experiments.md").read_text() == "my notes" and not (out / "runs").exists() and afile.read_text() == "mine"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_experiments_that_fail_before_any_run_leave_no_folder(with_val, tmp_path):
+    out = tmp_path / "exp"
+    p = _experiments(with_val, out, "--steps", "2", "--tables", "III", "--device", "cuda")
+    assert p.returncode == 1 and "sees no CUDA device" in p.stderr
+    assert not out.exists()

@@ -153,6 +153,19 @@ def _remove_made(made: list[Path]) -> None:
 
 
 @contextlib.contextmanager
+def output_folder(folder: Path) -> Iterator[Path]:
+    """Make ``folder`` (and its missing parents) for outputs written inside it one by one;
+    if the block fails, remove the folders made here that are still empty (outputs already
+    written inside stay, with their folders)."""
+    made = _make_parents(folder)
+    try:
+        yield folder
+    except BaseException:
+        _remove_made(made)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_output(path: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield the partial path to write ``path`` into (a file or a folder, made by the
     caller); on success it replaces ``path``, on any failure it is removed, with the

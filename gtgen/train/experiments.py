@@ -24,7 +24,7 @@ from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig, load_config, read_yaml
 from gtgen.errors import ConfigError, TrainError
 from gtgen.report.stats import PAPER_REGION_SHARE_PCT
-from gtgen.runtime.output import check_replace, lock, signature, write_atomic, write_json
+from gtgen.runtime.output import check_replace, lock, output_folder, signature, write_atomic, write_json
 from gtgen.storage.dataset import DatasetStore
 from gtgen.train.checkpoint import load_checkpoint
 from gtgen.train.data import NO_SCANS
@@ -247,8 +247,7 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
         raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
     for path in (res.json_path, res.markdown_path):  # before an hour of training, not after
         check_replace(path)
-    out.mkdir(parents=True, exist_ok=True)
-    with lock(out):
+    with output_folder(out), lock(out):
         evals = _train_and_evaluate(dataset, out, plan, base, n_steps, seeds, split, device, progress, res)
         res.tables = [_fill(t, {name: mean_and_spread(evs) for name, evs in evals.items()}, plan, seeds) for t in plan.tables]
         summary = {"dataset": str(dataset), "split": split, "preset": preset, "steps": n_steps, "seeds": seeds, "notes": notes,
