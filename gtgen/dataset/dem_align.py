@@ -162,11 +162,10 @@ def _tile_entry(t: TileJudgement) -> TileEntry:
         return round(float(x), 4) if np.isfinite(x) else None
 
     f = t.border
-    return TileEntry(path=t.name, status=t.status, reason=t.reason, border_pixels=f.pixels if f else 0,
-                     border_step_m=num(f.step_m) if f else None, border_step_put_back_m=num(f.best_step_m) if f else None,
-                     offset_m=[num(x) for x in f.offset] if f else [None] * 3, sigma_m=[num(x) for x in f.sigma] if f else [None] * 3,
-                     applied_m=[round(float(x), 4) for x in t.applied], ground_cells=t.ground_cells,
-                     ground_disagreement=num(t.ground_disagreement))
+    border = {"border_pixels": f.pixels, "border_step_m": num(f.step_m), "border_step_put_back_m": num(f.best_step_m),
+              "offset_m": [num(x) for x in f.offset], "sigma_m": [num(x) for x in f.sigma]} if f else {"offset_m": [None] * 3, "sigma_m": [None] * 3}
+    return TileEntry(path=t.name, status=t.status, reason=t.reason, applied_m=[round(float(x), 4) for x in t.applied],
+                     ground_cells=t.ground_cells, ground_disagreement=num(t.ground_disagreement), **border)
 
 
 def dataset_attrs(cfg: GtgenConfig, drives: list[DriveEntry], image_size: tuple[int, int], cameras: list[str],

@@ -20,7 +20,7 @@ observed when the tile has neighbours on two sides at right angles.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,15 +57,13 @@ class BorderSide:
 
 @dataclass(frozen=True)
 class BorderFit:
-    """A tile's borders with its neighbours: how many border pixels have a neighbour and in
-    how many directions (2: both horizontal axes observed), the height step across them as
-    the tile is read (``step_m``: the steps' median absolute deviation about their median)
-    and put back by the best ``offset`` (dx, dy, dz) [m, working CRS, ``TileOffset``'s
+    """A tile's borders with its neighbours: how many border pixels have a neighbour, the
+    height step across them as the tile is read (``step_m``: the steps' median absolute
+    deviation about their median) and put back by the best ``offset`` (dx, dy, dz) [m, working CRS, ``TileOffset``'s
     sense] (``best_step_m``), the offset's 1-sigma uncertainty per axis [m], and the
     vertical offset of the tile as it is read (``dz_as_read_m``)."""
 
     pixels: int
-    directions: int
     step_m: float
     best_step_m: float
     offset: NDArray[np.float64]
@@ -163,8 +161,7 @@ def border_fit(sides: list[BorderSide], radius_m: float) -> BorderFit | None:
         bx, by = float(fx[a2]), float(fy[b2])
         mb, med = _spread(_steps(sides, np.array([bx]), by))
     pixels = int(valid.sum())
-    directions = len({s.axis for s in sides})
-    fit = BorderFit(pixels, directions, float(m0[0]), float(mb[0]), np.array([bx, by, -float(med[0])]), np.zeros(3), -float(med0[0]))
+    fit = BorderFit(pixels, float(m0[0]), float(mb[0]), np.array([bx, by, -float(med[0])]), np.zeros(3), -float(med0[0]))
     # offsets that continue the neighbours as well as the best within its noise span about +-2 sigma
     level = fit.best_step_m + 2 * fit.step_noise_m
     X, Y = np.meshgrid(coarse, coarse, indexing="ij")
@@ -173,5 +170,4 @@ def border_fit(sides: list[BorderSide], radius_m: float) -> BorderFit | None:
     near_y = np.concatenate([Y[C <= level], FY[F <= level], [by]])
     sx = max(float(np.abs(near_x - bx).max()) / 2, MIN_SIGMA_M)
     sy = max(float(np.abs(near_y - by).max()) / 2, MIN_SIGMA_M)
-    sz = 1.2533 * 1.4826 * fit.best_step_m / np.sqrt(max(pixels / STEPS_PER_INDEPENDENT, 1.0))
-    return BorderFit(pixels, directions, fit.step_m, fit.best_step_m, fit.offset, np.array([sx, sy, sz]), fit.dz_as_read_m)
+    return replace(fit, sigma=np.array([sx, sy, 1.4826 * fit.step_noise_m]))  # dz: the steps' median, as a sigma

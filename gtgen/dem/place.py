@@ -260,16 +260,14 @@ class DrivePlacement:
         self.tile_bad += np.bincount(tile[on], weights=np.abs(r - np.median(r))[on] > self.cfg.dem.disagreement_m, minlength=n).astype(np.int64)
 
     def _tiles_at(self, T: NDArray, mask: NDArray) -> NDArray[np.int64]:
+        """Return the tile index of each cell of ``mask`` at placement ``T``, -1 off every tile."""
         E = T[0, 0] * self.X[mask] + T[0, 1] * self.Y[mask] + T[0, 3]
         N = T[1, 0] * self.X[mask] + T[1, 1] * self.Y[mask] + T[1, 3]
         return self.dem.tile_of(E, N)
 
     def _on_set_aside(self, T: NDArray, mask: NDArray) -> float:
         """Return the share of the cells ``mask`` that lie on tiles set aside, at placement ``T``."""
-        E = T[0, 0] * self.X[mask] + T[0, 1] * self.Y[mask] + T[0, 3]
-        N = T[1, 0] * self.X[mask] + T[1, 1] * self.Y[mask] + T[1, 3]
-        return float(np.isin(self.dem.tile_of(E, N), list(self.dem.exclude)).mean())
-
+        return float(np.isin(self._tiles_at(T, mask), list(self.dem.exclude)).mean())
 
 
 def gnss_fixes(fixes: Fixes, track: PoseTrack, crs: str) -> tuple[NDArray, NDArray]:

@@ -108,8 +108,7 @@ def _scan_input(ds: DatasetStore) -> dict[str, float]:
     points of a sample's 1 and N newest scans (empty without raw scans)."""
     if not ds.has_scans or not ds.n_samples:
         return {}
-    _, counts = ds.scan_input()
-    c = np.stack([counts[k] for k in range(ds.n_samples)])
+    c = ds.scan_counts()
     return {"samples_without_scans": int((c[:, -1] == 0).sum()), "median_points_newest": float(np.median(c[:, 0])),
             f"median_points_{c.shape[1]}_scans": float(np.median(c[:, -1]))}
 

@@ -158,6 +158,10 @@ class DatasetStore(Store):
         (NaN after the last) and, per age a, the points of the scans of age < a + 1 (N_s,)."""
         return self._rows("inputs/scan_points_m"), self._rows("inputs/scan_counts")
 
+    def scan_counts(self) -> NDArray[np.int32]:
+        """Return (S, N_s): every sample's points of the scans of age < a + 1, read at once."""
+        return self.read("inputs/scan_counts")
+
     def voxel_offsets(self) -> NDArray[np.int64]:
         """Return (S + 1,): sample s owns voxel points offsets[s]:offsets[s + 1]."""
         return self.read("inputs/voxel_offsets")

@@ -24,7 +24,7 @@ from gtgen import codes
 from gtgen.config import GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from gtgen.grids import nearest_filled
-from gtgen.runtime.output import check_replace, lock, owned, remove, write_json
+from gtgen.runtime.output import check_replace, lock, output_folder, owned, remove, write_json
 from gtgen.runtime.progress import track
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
@@ -168,24 +168,22 @@ def _run_folder(run_dir: Path, ckpt: Path, overwrite: bool) -> Iterator[None]:
     fails before the run's first checkpoint, remove the folders it made. A file of a run's
     name there must be gtgen's (unless ``overwrite``): the signed ones by their signature,
     the CSV curves by the signed config of the run they belong to."""
-    made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]
+    new = not run_dir.exists()
     if run_dir.exists() and not run_dir.is_dir():
         raise TrainError(f"run folder '{run_dir}' is a file; choose another --run-dir")
     ours = owned(run_dir / CONFIG_FILE)
     for name in RUN_FILES:
         if not (ours and name.endswith(".csv")):
             check_replace(run_dir / name, overwrite)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        with lock(run_dir):
-            yield
-    except BaseException:
-        if made and not ckpt.exists():
-            remove(run_dir)
-            for p in made[1:]:
-                with contextlib.suppress(OSError):
-                    p.rmdir()  # only if empty
-        raise
+    with output_folder(run_dir):  # the folders made for the run go if they are left empty
+        try:
+            with lock(run_dir):
+                yield
+        except BaseException:
+            if new and not ckpt.exists():
+                for p in list(run_dir.iterdir()):  # what the failed run wrote
+                    remove(p)
+            raise
 
 
 def _datasets(dataset: Path, tc: TrainConfig) -> tuple[ShardDataset, ShardDataset | None]:
