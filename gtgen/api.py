@@ -5,7 +5,8 @@ the stages (storage below, the trainer's torch view reached lazily), so no stage
     ds.splits["val"]                       # sample indices of the val split
     ds.schema["labels/micro/elevation_m"]  # dtype, shape, units, frame, fill, meaning
     labels = ds.xarray("labels/micro")     # xarray.Dataset: sample (time) x x_m x y_m
-    front, left, right, back = ds.images(0)  # sample 0's images decoded (H, W, 3) RGB
+    ds.cameras                             # the camera names, in the order of the images
+    front, left, right, back = ds.images(0)  # sample 0's images decoded (H, W, 3) RGB (an X-Racer rig)
     ds.jpeg_files(0)                       # ... or their JPEG files as stored
     torch_ds = ds.torch("train")           # a PyTorch Dataset (gtgen.train.data.ShardDataset)
 """
@@ -49,14 +50,20 @@ class Dataset:
         """Sample indices per split name (``train``, ``val``, ``test``)."""
         return self.store.splits
 
+    @property
+    def cameras(self) -> list[str]:
+        """The cameras' names, in the order of ``images`` and of the camera axis of
+        ``inputs/*`` (empty: the drives had no camera, and the dataset holds no image)."""
+        return self.store.cameras
+
     def images(self, k: int) -> list[np.ndarray]:
-        """Return sample ``k``'s four images (front, left, right, back) decoded, (H, W, 3)
+        """Return sample ``k``'s images decoded, one per camera (``cameras``' order), (H, W, 3)
         RGB uint8 at their stored size: rectified, so ``inputs/K`` of the sample projects
         into them as a pinhole."""
         return self.store.images(k)
 
     def jpeg_files(self, k: int) -> list[bytes]:
-        """Return sample ``k``'s four JPEG files (front, left, right, back) as stored."""
+        """Return sample ``k``'s JPEG files as stored, one per camera (``cameras``' order)."""
         return self.store.jpeg_files(k)
 
     def xarray(self, group: str = "labels/micro") -> Any:

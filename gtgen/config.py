@@ -8,6 +8,7 @@ test keeps it equal to these defaults.
 from __future__ import annotations
 
 import difflib
+import re
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -17,7 +18,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from gtgen.errors import ConfigError, InputNotFoundError
 
 RANGES = ("micro", "short")
-CAMERAS = ("front", "left", "right", "back")
+CAMERAS = ("front", "left", "right", "back")  # X-Racer's rig (the default topics.cameras) and the synthetic drive's
+MAX_CAMERAS = 8
+LIDAR_REFERENCE = "lidar"  # extract.reference: sample times snap to the first lidar's scans
 LIDARS = ("front", "front_tilted", "back")  # the synthetic drive's lidars (the paper's three VLP-32C)
 LIDAR_TOPICS = tuple(f"/lidar/{n}/points" for n in LIDARS)
 MAX_SPAN_S = 86_400.0  # longest time span a setting takes [s]: a day; stamps are int64 ns, and a window beyond any drive means nothing
@@ -63,6 +66,8 @@ class LayersConfig(_Model):
 
 
 class CameraTopics(_Model):
+    """One camera's topics (both are needed: the images and their calibration)."""
+
     image: str = Field(description="sensor_msgs/CompressedImage or Image topic")
     info: str = Field(description="sensor_msgs/CameraInfo topic")
 
@@ -82,8 +87,8 @@ class TopicsConfig(_Model):
     odometry: str | None = Field("/xracer/odometry", description="nav_msgs/Odometry odom -> base; null: poses from TF odom_frame -> base_frame")
     tf: str = Field("/tf", description="tf2_msgs/TFMessage (or tf/tfMessage): moving frames")
     tf_static: str = Field("/tf_static", description="tf2_msgs/TFMessage, latched extrinsics")
-    gnss: str = Field("/gnss/fix", description="sensor_msgs/NavSatFix")
-    cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras)
+    gnss: str | None = Field("/gnss/fix", description="sensor_msgs/NavSatFix (optional: a topic the bags do not hold is skipped); null: no GNSS, so no DEM placement (gtgen dem-align --no-dem)")
+    cameras: dict[str, CameraTopics] = Field(default_factory=_default_cameras, description="0 to 8 cameras by a name of your choosing (letters, digits, _ and -): {name: {image, info}}, in the order the stores keep them; a config file's mapping replaces the default one whole ({} for none)")
     voxel_map: str | None = Field("/xracer/voxel_map", description="sensor_msgs/PointCloud2; null: made from the raw lidar scans (topics.lidar)")
     lidar: list[str] = Field(default_factory=lambda: list(LIDAR_TOPICS), description="sensor_msgs/PointCloud2 raw scans, one topic per lidar in any frame TF connects to odom (optional: topics not in the bags are skipped; the N-scan input of Tab. III)")
     odom_frame: str = Field("odom", description="frame the drive is stored in (maps, voxel maps and poses are put in it through TF)")
@@ -111,10 +116,19 @@ class TopicsConfig(_Model):
             out[f"cameras.{c}.info"] = ct.info
         return out
 
+    @property
+    def camera_names(self) -> list[str]:
+        """The configured cameras' names, in the order the stores keep their images."""
+        return list(self.cameras)
+
     @model_validator(mode="after")
-    def _four_cameras_one_role_each(self) -> TopicsConfig:
-        if sorted(self.cameras) != sorted(CAMERAS):
-            raise ValueError(f"cameras must be exactly {list(CAMERAS)}, got {sorted(self.cameras)}")
+    def _cameras_one_role_each(self) -> TopicsConfig:
+        if len(self.cameras) > MAX_CAMERAS:
+            raise ValueError(f"topics.cameras names {len(self.cameras)} cameras ({', '.join(self.cameras)}); expected at most {MAX_CAMERAS}")
+        for name in self.cameras:
+            if not re.fullmatch(r"[A-Za-z0-9_-]{1,32}", name) or name == LIDAR_REFERENCE:
+                raise ValueError(f"camera name {name!r}: expected 1 to 32 letters, digits, '_' or '-', and not {LIDAR_REFERENCE!r} "
+                                 "(extract.reference's name for the lidar)")
         keys: dict[str, list[str]] = {}
         for key, topic in {**self.roles(), "tf": self.tf, "tf_static": self.tf_static}.items():
             keys.setdefault(topic, []).append(key)
@@ -242,6 +256,7 @@ class ExtractConfig(_Model):
     """Bags -> drive store, and sample selection."""
 
     stride_m: float = Field(2.0, gt=0, description="travel between samples [m]")
+    reference: str | None = Field(None, description="the sensor whose stamps sample times snap to: a camera's name (topics.cameras) or 'lidar' (the first topics.lidar topic the bags hold); null: the first camera, else the lidar")
     image_skew_s: float = Field(0.05, ge=0, le=MAX_SPAN_S, description="max image-to-sample time skew [s]")
     map_skew_s: float = Field(0.1, ge=0, le=MAX_SPAN_S, description="max GridMap-to-sample time skew [s]")
     voxel_skew_s: float = Field(0.3, ge=0, le=MAX_SPAN_S, description="max voxel-map-to-sample skew [s]; the voxel map is stored with its pose, so a few hundred ms is harmless")
@@ -272,6 +287,7 @@ class FuseConfig(_Model):
 class DemConfig(_Model):
     """DEM placement, ICP refinement and inpainting."""
 
+    enabled: bool = Field(True, description="false: no DEM (gtgen dem-align --no-dem): the dataset holds the fused labels alone, unobserved cells stay unlabelled (region 0) and samples are not georeferenced")
     dir: str | None = Field(None, description="DEM folder; default: 'dem/' beside the first bag")
     min_fitness: float = Field(0.6, ge=0, le=1, description="reject a sample below this ICP fitness")
     max_rmse_m: float = Field(0.25, gt=0, description="reject a sample above this ICP inlier RMSE [m]")
@@ -394,6 +410,7 @@ class MappingConfig(_Model):
     ground_band_m: float = Field(0.15, gt=0, description="a cell's ground is the mean of its points within this of its lowest point [m]: vegetation and overhangs above stay out")
     min_points: int = Field(2, ge=1, description="ground points a cell needs before it has an elevation")
     overhang_m: float = Field(2.5, gt=0, description="points higher than this above a cell's ground are overhangs (branches the vehicle passes under): not obstacles [m]")
+    max_height_m: float | None = Field(None, description="points higher than this above the base (odom z) at their sweep are left out of the maps and the voxel map: ceilings, bridges, crowns seen where no ground is, which the lowest points of a cell would read as ground indoors [m]; null keeps every point (off-road: hills ahead rise above the base)")
     body_x_m: tuple[float, float] = Field((-2.5, 2.5), description="the vehicle's own body along base x, masked out of every sweep [m]")
     body_y_m: tuple[float, float] = Field((-1.2, 1.2), description="the vehicle's body along base y [m]")
     body_z_m: tuple[float, float] = Field((-0.5, 2.5), description="the vehicle's body along base z [m]")
@@ -430,17 +447,39 @@ class GtgenConfig(_Model):
     train: TrainConfig = Field(default_factory=TrainConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
 
+    @model_validator(mode="after")
+    def _reference_is_a_sensor(self) -> GtgenConfig:
+        ref = self.extract.reference
+        if ref is not None and ref != LIDAR_REFERENCE and ref not in self.topics.cameras:
+            raise ValueError(f"extract.reference = {ref!r} names no configured sensor; expected one of "
+                             f"{[*self.topics.cameras, LIDAR_REFERENCE]} (a camera of topics.cameras, or the lidar)")
+        if ref == LIDAR_REFERENCE and not self.topics.lidar:
+            raise ValueError("extract.reference = 'lidar', but topics.lidar lists no lidar topic")
+        return self
+
+    @property
+    def reference(self) -> str:
+        """The sensor sample times snap to: ``extract.reference``, else the first camera, else 'lidar'."""
+        if self.extract.reference is not None:
+            return self.extract.reference
+        return next(iter(self.topics.cameras), LIDAR_REFERENCE)
+
 
 def configs_dir() -> Path:
     """Return the project's ``configs/`` folder (YAML only)."""
     return Path(__file__).resolve().parent.parent / "configs"
 
 
-def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+# mappings a config layer gives whole: a robot's cameras replace the default rig, they do
+# not join it (a layer that names two cameras means two)
+WHOLE = {("topics", "cameras")}
+
+
+def _deep_merge(base: dict[str, Any], over: dict[str, Any], at: tuple[str, ...] = ()) -> dict[str, Any]:
     out = dict(base)
     for key, val in over.items():
-        if isinstance(val, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], val)
+        if isinstance(val, dict) and isinstance(out.get(key), dict) and (*at, key) not in WHOLE:
+            out[key] = _deep_merge(out[key], val, (*at, key))
         else:
             out[key] = val
     return out
@@ -464,6 +503,9 @@ def _format_validation(err: ValidationError) -> str:
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     if first["type"] == "extra_forbidden":
         return f"config key '{loc}' is not a gtgen setting; {_nearest_key(parts)}{more}"
+    if first["type"] == "value_error":  # a validator's own message names the keys and values
+        msg = first["msg"].removeprefix("Value error, ")
+        return f"config: {msg}{more}" if loc == "<root>" else f"config key '{loc}': {msg}{more}"
     val = first.get("input")
     shown = "" if isinstance(val, dict) else f" = {val!r}"
     return f"config key '{loc}'{shown}: {first['msg']}{more}"

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gtgen.config import CAMERAS, RANGES
+from gtgen.config import RANGES
 from gtgen.errors import ConfigError
 from gtgen.runtime.output import save_figure
 from gtgen.storage.dataset import DatasetStore
@@ -40,16 +40,18 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
     cols = ["elevation", "risk", "confidence", "regions", "X-Racer elevation at t", "DEM (aligned)"]
     if prediction:
         cols += ["predicted elevation", "predicted risk"]
-    fig = plt.figure(figsize=(3 * len(cols), 10.5))
-    gs = fig.add_gridspec(3, len(cols))
-    imgs = ds.images(index)
-    step = max(1, len(cols) // 4)
-    for c_i, cam in enumerate(CAMERAS):
-        ax = fig.add_subplot(gs[0, c_i * step : (c_i + 1) * step])
-        ax.imshow(imgs[c_i])
-        ax.set_title(cam)
-        ax.axis("off")
-    for row, r in enumerate(RANGES, start=1):
+    cams = ds.cameras  # a row of images when the dataset has any
+    top = 1 if cams else 0
+    fig = plt.figure(figsize=(3 * len(cols), 3.5 * (2 + top)))
+    gs = fig.add_gridspec(2 + top, len(cols))
+    if cams:
+        row0 = gs[0, :].subgridspec(1, len(cams))
+        for c_i, (cam, img) in enumerate(zip(cams, ds.images(index))):
+            ax = fig.add_subplot(row0[0, c_i])
+            ax.imshow(img)
+            ax.set_title(cam)
+            ax.axis("off")
+    for row, r in enumerate(RANGES, start=top):
         el = ds.grid("labels", r, "elevation_m")[index]
         vmin, vmax = np.nanpercentile(el, [2, 98]) if np.isfinite(el).any() else (-1, 1)
         reg = ds.grid("labels", r, "region")[index]

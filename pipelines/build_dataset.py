@@ -172,7 +172,7 @@ def process_drive(name: str, bags: list[str], dem_dir: str, work: str, cfg: Gtge
         run_fuse(folder / "drive.zarr", folder / "fused.zarr", cfg, workers=workers, overwrite=overwrite)
         res.seconds["fuse"] = time.perf_counter() - t
         t = time.perf_counter()
-        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir), folder / "dataset.zarr", cfg, workers=workers,
+        al = run_dem_align(folder / "drive.zarr", folder / "fused.zarr", Path(dem_dir) if dem_dir else None, folder / "dataset.zarr", cfg, workers=workers,
                            overwrite=overwrite)
         res.seconds["dem-align"] = time.perf_counter() - t
     except GtgenError as err:
@@ -262,8 +262,12 @@ def _remove_if_failed(made: list[Path]) -> Iterator[None]:
 def _dems(drives: dict[str, list[Path]], dem_dir: Path | None, cfg: GtgenConfig) -> dict[str, tuple[Path, str]]:
     """Return each drive's DEM (``--dem``, else dem.dir, else dem/ beside its bags) and the
     fingerprint of every file its tiles read; a DEM that does not exist or holds no tile is
-    an error before any drive runs."""
+    an error before any drive runs. Without a DEM (``dem.enabled`` false): none, ''."""
     out, seen = {}, {}
+    if not cfg.dem.enabled:
+        if dem_dir is not None:
+            raise ConfigError(f"--dem {dem_dir} given with --no-dem (dem.enabled: false); expected one of them")
+        return {name: (Path(""), "") for name in drives}
     for name, bags in drives.items():
         src = dem_dir or default_dem_dir(cfg.dem.dir, bags)
         if src not in seen:
@@ -286,7 +290,7 @@ def _done_and_todo(drives: dict[str, list[Path]], dems: dict[str, tuple[Path, st
             if res is not None:
                 done[name] = res
                 continue
-        todo.append((name, [str(b) for b in bags], str(dems[name][0]), str(work), cfg, hashes))
+        todo.append((name, [str(b) for b in bags], str(dems[name][0]) if cfg.dem.enabled else "", str(work), cfg, hashes))
     inner = 1 if scheduler else max(1, workers // max(len(todo), 1))
     return done, [(*t, inner, overwrite) for t in todo]
 

@@ -46,7 +46,7 @@ def test_partial_override_keeps_other_defaults(tmp_path: Path):
         ("fuse:\n  window_s: -1\n", "fuse.window_s"),
         ("fuse:\n  windw_s: 3\n", "config key 'fuse.windw_s' is not a gtgen setting; did you mean 'fuse.window_s'?"),
         ("fuze:\n  window_s: 3\n", "config key 'fuze' is not a gtgen setting; did you mean 'fuse'?"),
-        ("dem:\n  qqq: 3\n", "config key 'dem.qqq' is not a gtgen setting; dem takes: dir, min_fitness"),
+        ("dem:\n  qqq: 3\n", "config key 'dem.qqq' is not a gtgen setting; dem takes: enabled, dir, min_fitness"),
         ("fuse:\n  window_s: .inf\n", "config key 'fuse.window_s' = inf: Input should be a finite number"),
         ("grids:\n  micro:\n    resolution_m: 0\n", "grids.micro.resolution_m"),
         ("synth:\n  speed_min_mps: 9\n  speed_max_mps: 5\n", "speed_max_mps"),
@@ -70,7 +70,8 @@ def test_missing_config_file():
 
 @pytest.mark.parametrize("over, needle", [
     ({"topics": {"map_short": "/xracer/map/micro"}}, "topics.map_micro and topics.map_short"),
-    ({"topics": {"cameras": {"left": {"image": "/cam_front/image/compressed", "info": "/cam_left/camera_info"}}}},
+    ({"topics": {"cameras": {"front": {"image": "/cam_front/image/compressed", "info": "/cam_front/camera_info"},
+                             "left": {"image": "/cam_front/image/compressed", "info": "/cam_left/camera_info"}}}},
      "topics.cameras.front.image and topics.cameras.left.image"),
     ({"topics": {"gnss": "/tf"}}, "topics.gnss and topics.tf"),
     ({"topics": {"layers": {"risk": "elevation"}}}, "topics.layers names"),

@@ -99,8 +99,8 @@ def _block(rng, S, micro, short, nb, src):
     out = []
     for k in range(S):
         s = _Flat()
-        for spec in sc.SAMPLE_ARRAYS:
-            shape = row_shape(spec, {"n_m": micro, "n_s": short, "B": nb})
+        for spec in sc.SAMPLE_ARRAYS + sc.CAMERA_ARRAYS:
+            shape = row_shape(spec, {"n_m": micro, "n_s": short, "C": 4, "B": nb})
             dt = np.dtype(spec.dtype)
             v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
             if spec.path == "labels/micro/risk" and k == 2:
@@ -124,7 +124,7 @@ def test_write_block_equals_zarr_writes(tmp_path):
         src.create_array(path, shape=(S, n, n), dtype="float32", chunks=(1, n, n), fill_value=np.nan, compressors=compressors())
     samples = _block(rng, S, micro, short, nb, src)
     for name, direct in (("ours", True), ("zarr", False)):
-        ShardWriter(tmp_path / f"{name}.zarr", 2 * sc.SAMPLES_PER_SHARD, micro, short, nb)
+        ShardWriter(tmp_path / f"{name}.zarr", 2 * sc.SAMPLES_PER_SHARD, micro, short, 4, nb)
         write_block(tmp_path / f"{name}.zarr", sc.SAMPLES_PER_SHARD, samples, direct=direct)
     a, b = (zarr.open_group(str(tmp_path / f"{n}.zarr"), mode="r") for n in ("ours", "zarr"))
     for path in samples[0]:
@@ -142,13 +142,13 @@ def test_write_block_equals_zarr_writes(tmp_path):
 def test_sample_reader_equals_zarr_on_every_dataset_array(dataset, tmp_path):
     import zarr
 
-    from gtgen.storage.schema import SAMPLE_ARRAYS
+    from gtgen.storage.schema import CAMERA_ARRAYS, SAMPLE_ARRAYS
     from gtgen.storage.shards import SampleReader
 
     g = zarr.open_group(str(dataset), mode="r")
     S = g["meta/t_ns"].shape[0]
     fast = 0
-    for spec in SAMPLE_ARRAYS:
+    for spec in SAMPLE_ARRAYS + CAMERA_ARRAYS:
         path = spec.path
         arr = g[path]
         r = SampleReader(arr)

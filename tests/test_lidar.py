@@ -62,7 +62,7 @@ def test_real_hdl64_cloud_decodes_and_stages(tmp_path):
         raw = bytes(msg.data)
         for i in (0, 1, 4000, 124913):
             np.testing.assert_array_equal(pts[i], struct.unpack_from("<3f", raw, 32 * i))
-        with Stager(str(tmp_path), 0, cfg) as stager:
+        with Stager(str(tmp_path), 0, cfg, "camera.front") as stager:
             scan = scan_messages(bags.records(["/pointcloud2"], None, None), cfg, {"/pointcloud2": "lidar.0"}, stager)
     assert scan.stats["/pointcloud2"].decode_failures == 0 and scan.frames["lidar.0"] == "near_field"
     n, shift = stager.result.scans[("lidar.0", 0)]

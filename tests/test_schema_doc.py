@@ -60,7 +60,7 @@ def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset,
             continue
         a = g[s.path]
         assert a.dtype == np.dtype(s.dtype), s.path
-        if s in sc.SAMPLE_ARRAYS:
+        if s in sc.SAMPLE_ARRAYS + sc.CAMERA_ARRAYS:
             assert a.shape[0] == S and a.chunks[0] == 1, s.path
             assert a.shards is not None and a.shards[0] == sc.SAMPLES_PER_SHARD, s.path
     assert g["labels/micro/elevation_m"].shape == (S, cfg.grids.micro.size, cfg.grids.micro.size)

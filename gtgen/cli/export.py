@@ -107,4 +107,5 @@ def onnx(
 
     res = export_onnx(ckpt, out, overwrite=overwrite)
     table("gtgen export onnx", [("out", res.out), ("checkpoint", f"{ckpt} (preset {res.preset}, step {res.step})"),
-                                ("inputs", ", ".join(res.inputs)), ("outputs", ", ".join(res.outputs))])
+                                ("inputs", ", ".join(res.inputs)), ("outputs", ", ".join(res.outputs)),
+                                ("cameras", ", ".join(res.cameras) if res.cameras else "none (no images input)")])

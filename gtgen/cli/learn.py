@@ -86,6 +86,8 @@ def _cell(res: dict, path: tuple[str, ...], coverage: bool = False) -> str:
     for k in path:
         node, sp = node[k], (sp[k] if sp is not None else None)
     val, s = (node["mae_m"], sp["mae_m"] if sp is not None else None) if coverage else (node, sp)
+    if coverage and node.get("coverage_pct") is None:
+        return "-"  # an empty region (no unobserved cells in a dataset without a DEM, say)
     text = fmt(val) + (f" ± {fmt(s)}" if s is not None else "")
     return text + (f" ({fmt(node['coverage_pct'], True)})" if coverage else "")
 

@@ -20,6 +20,8 @@ def synth(
                                          help="bag flavours to write [default from config: both]"),
     scan_rate: Optional[float] = typer.Option(None, "--scan-rate", metavar="HZ", callback=setting("synth.scan_rate_hz"),
                                               help="raw scans per lidar, 0 for none [default from config: 10]"),
+    cameras: Optional[int] = typer.Option(None, "--cameras", min=0, max=4, metavar="N",
+                                          help="cameras the drive carries: the first N of front, left, right, back [default: topics.cameras]"),
     overwrite: bool = typer.Option(False, help="replace a non-empty OUT"),
     config: Optional[Path] = ConfigOpt,
 ) -> None:
@@ -31,11 +33,17 @@ def synth(
     gtgen synth drive                   # 60 s drive, ROS 2 MCAP + ROS 1 bag
     gtgen synth drive --seed 3 --duration 120 --format mcap
     gtgen synth drive --scan-rate 2     # fewer raw scans: a faster drive
+    gtgen synth drive --cameras 1       # a one-camera rig (front): extract it with --config drive/gtgen-config.yaml
     ```
     """
     given = {"seed": seed, "duration_s": duration, "formats": format, "scan_rate_hz": scan_rate}
-    over: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
-    cfg = load(config, {"synth": over})
+    over: dict[str, Any] = {"synth": {k: v for k, v in given.items() if v is not None}}
+    if cameras is not None:
+        from gtgen.config import CAMERAS, TopicsConfig
+
+        rig = TopicsConfig().cameras
+        over["topics"] = {"cameras": {c: rig[c].model_dump() for c in CAMERAS[:cameras]}}
+    cfg = load(config, over)
     from gtgen.synth import run_synth
 
     res = run_synth(cfg, out, overwrite=overwrite)
@@ -47,6 +55,10 @@ def synth(
         ("distance", f"{res.distance_m:.0f} m"),
     ]
     rows += [(f"  {k}", v) for k, v in sorted(res.counts.items())]
+    from gtgen.config import GtgenConfig
+
+    if cfg.topics != GtgenConfig().topics:
+        rows.append(("extract with", f"--config {res.out / 'gtgen-config.yaml'} (its topics are not the default mapping's)"))
     table("gtgen synth", rows)
 
 
@@ -92,6 +104,7 @@ def extract(
         ("poses", res.poses),
         ("candidates", res.n_candidates),
         ("samples kept", res.n_samples),
+        ("samples snap to", res.reference),
     ]
     rows += [(f"  rejected: {k}", v) for k, v in res.rejected.items()]
     rows += [(f"maps kept ({k})", v) for k, v in res.maps_kept.items()]
@@ -141,20 +154,25 @@ def dem_align(
     drive: Path = typer.Argument(WORKSPACE / "drive.zarr", metavar="DRIVE", help="drive store from 'gtgen extract'"),
     fused: Optional[Path] = typer.Option(None, "--fused", help="fused store [default: fused.zarr beside DRIVE]"),
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
+    no_dem: bool = typer.Option(False, "--no-dem", help="no DEM (dem.enabled: false): the fused labels alone, unobserved cells unlabelled"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
     overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """Place the DEM by GNSS, refine per sample by ICP, reject misfits, inpaint, write shards.
 
+    A log without GNSS or without DEM tiles: --no-dem writes the dataset from the fused
+    labels alone (unobserved cells stay unlabelled, samples are not georeferenced).
+
     **Examples**
 
     ```
     gtgen dem-align                     # gtgen_ws/ -> gtgen_ws/dataset.zarr
     gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
+    gtgen dem-align --no-dem            # a lidar-and-poses log: no GNSS, no DEM
     ```
     """
-    cfg = load(config)
+    cfg = _no_dem(load(config), dem, no_dem)
     from gtgen.dataset.dem_align import run_dem_align
 
     res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg,
@@ -172,21 +190,32 @@ def dem_align(
     if res.n_kept and not res.split_counts.get("val"):
         rows.append(("  split val", f"0: no {cfg.shards.split_block_m:g} m block (shards.split_block_m) of this drive fell in val; "
                                     "train will not validate: a smaller block, or more drives, gives it one"))
-    rows += [
-        ("working CRS", res.crs),
-        ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
-        ("vertical offset odom->DEM", f"{res.dz_dem_m:+.2f} m"),
-        ("ellipsoid - DEM height (geoid)", f"{res.geoid_offset_m:+.2f} m"),
-    ]
+    if res.fit is None:
+        rows.append(("DEM", "none (--no-dem): unobserved cells unlabelled, samples not georeferenced (geography split in odom)"))
+    else:
+        rows += [
+            ("working CRS", res.crs),
+            ("GNSS fit", f"rms {res.fit.rms_m:.2f} m over {res.fit.n_used} fixes, {res.fit.n_outliers} outliers, yaw {np.degrees(res.fit.yaw):.2f} deg"),
+            ("vertical offset odom->DEM", f"{res.dz_dem_m:+.2f} m"),
+            ("ellipsoid - DEM height (geoid)", f"{res.geoid_offset_m:+.2f} m"),
+        ]
     if f is not None:
         rows.append(("ICP fitness", f"median {np.median(f):.3f}, min {f.min():.3f}"))
     table("gtgen dem-align", rows)
+
+
+def _no_dem(cfg: Any, dem: Optional[Path], no_dem: bool) -> Any:
+    """Return ``cfg`` with ``dem.enabled`` off for ``--no-dem``; ``--dem`` beside it is a usage error."""
+    if no_dem and dem is not None:
+        raise typer.BadParameter(f"--no-dem and --dem {dem} given together; expected one of them", param_hint="--dem")
+    return cfg.model_copy(update={"dem": cfg.dem.model_copy(update={"enabled": False})}) if no_dem else cfg
 
 
 @app.command()
 def build(
     sources: list[Path] = typer.Argument(..., metavar="SOURCE...", help="manifest YAML, drive folders, a folder of drive folders, or bags"),
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside each drive's bags]"),
+    no_dem: bool = typer.Option(False, "--no-dem", help="no DEM (dem.enabled: false): the fused labels alone, unobserved cells unlabelled"),
     out: Path = typer.Option(Path("gtgen_build"), "-o", "--out", help="output folder (dataset.zarr + drives/)"),
     workers: int = typer.Option(2, min=1, max=MAX_WORKERS, help="local worker processes"),
     scheduler: Optional[str] = typer.Option(None, help="dask.distributed scheduler address (e.g. tcp://host:8786)"),
@@ -206,7 +235,7 @@ def build(
     """
     from pipelines.build_dataset import build_dataset, summary_rows
 
-    cfg = load(config)
+    cfg = _no_dem(load(config), dem, no_dem)
     res = build_dataset(sources, dem, out, cfg, workers=workers, scheduler=scheduler, overwrite=overwrite)
     table("gtgen build", summary_rows(res))
     if any(not r.ok for r in res.drives):

@@ -42,7 +42,9 @@ def report(
     if len(c.get("split_by_drive", {})) > 1:
         rows += [(f"  drive {d}", ", ".join(f"{k} {v}" for k, v in n.items() if v)) for d, n in c["split_by_drive"].items()]
     if c.get("image_bytes_per_sample"):
-        rows.append(("images per sample (4 JPEG)", f"{c['image_bytes_per_sample'] / 1e3:.1f} kB"))
+        rows.append(("images per sample (JPEG, all cameras)", f"{c['image_bytes_per_sample'] / 1e3:.1f} kB"))
+    if c.get("dem"):
+        rows.append(("DEM", c["dem"]))
     if c.get("scan_input"):
         rows.append(("N-scan input (points: newest scan, all)", ", ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in c["scan_input"].items())))
     for r, cov in c.get("coverage", {}).items():
@@ -69,7 +71,7 @@ def report(
                 rows.append((f"truth {r} fatal risk", f"precision {na(fr['precision'])}, recall {na(fr['recall'])} against the truth's obstacles on {fr['cells']} observed cells"))
         d = t["dem_alignment"]
         hv, ha, vv = d["horizontal_at_vehicle_m"], d["horizontal_50m_ahead_m"], d["vertical_m"]
-        rows.append(("DEM alignment error", f"horizontal median {na(hv.get('median'), ' m')} (max {na(hv.get('max'), ' m')}), "
+        rows.append(("DEM alignment error", "none: no sample is placed (no DEM)") if not hv else ("DEM alignment error", f"horizontal median {na(hv.get('median'), ' m')} (max {na(hv.get('max'), ' m')}), "
                                             f"at 50 m ahead median {na(ha.get('median'), ' m')}, vertical median {na(vv.get('median'), ' m')} (max {na(vv.get('max'), ' m')})"))
     rj = t.get("rejections")
     if rj:
@@ -96,7 +98,7 @@ def viz(
     device: Optional[str] = typer.Option(None, help="device of the prediction: auto | cpu | cuda | cuda:N [default: auto]"),
     overwrite: bool = OverwriteOpt,
 ) -> None:
-    """Draw one sample: the four images, and per range labels, regions, X-Racer at t, DEM.
+    """Draw one sample: its cameras' images, and per range labels, regions, X-Racer at t, DEM.
 
     Reads only the dataset (grids and resolutions as recorded in it): no --config.
 

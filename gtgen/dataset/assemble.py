@@ -43,7 +43,7 @@ class Context:
 
     drive: DriveStore
     fused: FusedStore
-    dem: DemRef  # the drive's DEM in its working CRS, without the tiles set aside
+    dem: DemRef | None  # the drive's DEM in its working CRS, without the tiles set aside (None: no DEM)
     out_path: Path
     cfg: GtgenConfig
 
@@ -65,8 +65,10 @@ class Kept:
 _OPEN: dict[Path, DemSource] = {}
 
 
-def _dem(ctx: Context) -> DemSource:
-    """Return the DEM of ``ctx``, opened once per worker and dataset."""
+def _dem(ctx: Context) -> DemSource | None:
+    """Return the DEM of ``ctx``, opened once per worker and dataset (None: no DEM)."""
+    if ctx.dem is None:
+        return None
     if ctx.out_path not in _OPEN:
         for dem in _OPEN.values():
             dem.close()
@@ -84,7 +86,8 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     # the block's JPEG files and voxel maps in one read each (only theirs: rejected samples
     # between them are skipped), as zarr's cost per call dominates
     ks = np.array([it.k for it in items])
-    jpeg, jpeg_n = drive.jpeg(ks)
+    cameras = bool(drive.cameras)
+    jpeg, jpeg_n = drive.jpeg(ks) if cameras else (None, None)
     vs = np.unique(s.voxel_index[ks])
     vox, vox_n = drive.voxel_points(vs), drive.voxel_counts()
     K = drive.K()
@@ -97,8 +100,8 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
         v = s.voxel_index[it.k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
-        sample.inputs.update({"K": K, "T_base_cam": s.T_base_cam[it.k]})
-        sample.inputs.update({"jpeg": jpeg[j], "jpeg_nbytes": jpeg_n[j].astype(np.int32)})
+        if cameras:
+            sample.inputs.update({"K": K, "T_base_cam": s.T_base_cam[it.k], "jpeg": jpeg[j], "jpeg_nbytes": jpeg_n[j].astype(np.int32)})
         _inputs_and_meta(sample, cfg, it, int(s.t_ns[it.k]), pos, quat, yaw, pts_t)
         if scans is not None:
             sample.inputs["scan_points_m"], sample.inputs["scan_counts"] = scans.sample(j, pos, yaw)
@@ -129,18 +132,20 @@ def _inputs_and_meta(sample: DatasetSample, cfg: GtgenConfig, it: Kept, t_ns: in
         "dem_disagreement": np.float32(it.dem_disagreement),
         "gnss_offset_m": np.float32(it.gnss_offset_m),
         "vegetation_share": np.float32(it.vegetation_share),
-        "split": np.uint8(split_of(*T[:2, 3], cfg.shards)),
+        # without a DEM the geography blocks are the drive's own odom frame's
+        "split": np.uint8(split_of(*(T[:2, 3] if np.isfinite(T).all() else pos[:2]), cfg.shards)),
     })
 
 
-def sample_arrays(fused: FusedSample, dem_source: DemSource, T_crs_target: NDArray, grids: dict) -> DatasetSample:
+def sample_arrays(fused: FusedSample, dem_source: DemSource | None, T_crs_target: NDArray, grids: dict) -> DatasetSample:
     """Return one sample's label, X-Racer and DEM grids from its fused grids (region and
     elevation as values, the rest as values or encoded chunks, which stay as they come:
-    the dataset holds them unchanged)."""
+    the dataset holds them unchanged). Without a DEM (``dem_source`` None) its grids are
+    NaN and the unobserved cells are left unlabelled."""
     out = DatasetSample({}, {}, {})
     for r in RANGES:
         X, Y = grids[r]
-        dem = dem_patch(dem_source, T_crs_target, X, Y)
+        dem = dem_patch(dem_source, T_crs_target, X, Y) if dem_source is not None else np.full(X.shape, np.nan, np.float32)
         labels = dict(fused.labels[r])
         region, elev = labels["region"], labels["elevation_m"]
         unobs = region == codes.UNOBS

@@ -2,13 +2,16 @@
 write the dataset.
 
 ``run_dem_align`` reads like its steps: open the drive and fused stores, align the DEM
-to the drive (``gtgen.dem.run.align_drive``: GNSS fit, ICP chain, tiles set aside), record
-the rejected samples, assemble and write the kept ones a shard at a time on the pool, and
-last the dataset's attributes.
+to the drive (``gtgen.dem.run.align_drive``: GNSS fit, ICP chain, tiles set aside; without
+a DEM, ``dem.enabled: false``, every fused sample is kept unplaced), record the rejected
+samples, assemble and write the kept ones a shard at a time on the pool, and last the
+dataset's attributes.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,8 +25,9 @@ from gtgen.dataset.assemble import Context, Kept, build_block
 from gtgen.dem.fit import PlanarFit
 from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
-from gtgen.dem.run import Alignment, align_drive
+from gtgen.dem.run import Alignment, align_drive, unplaced
 from gtgen.dem.tiles import default_dem_dir
+from gtgen.errors import ConfigError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.storage.dataset import ShardWriter
@@ -40,10 +44,10 @@ class AlignResult:
     n_in: int
     n_kept: int
     rejected: dict[str, int]
-    fit: PlanarFit
+    fit: PlanarFit | None  # None: no DEM (dem.enabled: false), nothing placed
     dz_dem_m: float
     geoid_offset_m: float
-    crs: str = ""  # the working CRS the drive was placed in
+    crs: str = ""  # the working CRS the drive was placed in ("": no DEM)
     fitness: list[float] = field(default_factory=list)
     split_counts: dict[str, int] = field(default_factory=dict)
 
@@ -54,13 +58,14 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
 
     The ICP chain is sequential; building and writing the kept samples runs on
     ``workers`` processes alongside it. The dataset does not depend on ``workers``.
+    With ``dem.enabled`` false no DEM is read (``dem_dir`` must be None): every fused sample
+    is kept with the fused labels alone.
     """
     drive, fused = DriveStore(drive_path), FusedStore(fused_path)
     _check_grids(fused, cfg)
-    dem_dir = dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags])
     with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
-            align_drive(drive, fused, dem_dir, cfg, cache=out.parent / "dem-index.json") as al:
-        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, drive.jpeg_capacity,
+            _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json") as al:
+        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, len(drive.cameras), drive.jpeg_capacity,
                              scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None)
         kept = _record(al, writer)
         ctx = Context(drive, fused, al.dem, tmp, cfg)
@@ -69,18 +74,32 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
             for item in kept:
                 blocks.add(item)
             blocks.finish()
-        entry = drive_entry(drive_path, drive, al.dem.crs, al, suspect_tiles=al.suspect_tiles)
+        entry = drive_entry(drive_path, drive, al)
         n = writer.close(dataset_attrs(cfg, [entry], drive.image_size, drive.cameras))
         splits = writer.split_counts()
     p = al.placement
-    return AlignResult(out, drive.n_samples, n, writer.rejected_counts(), p.fit, p.dz_dem, p.geoid_offset_m, al.dem.crs, al.fitness,
+    if p is None:
+        return AlignResult(out, drive.n_samples, n, writer.rejected_counts(), None, float("nan"), float("nan"), "", [], splits)
+    return AlignResult(out, drive.n_samples, n, writer.rejected_counts(), p.fit, p.dz_dem, p.geoid_offset_m, entry.crs, al.fitness,
                        splits)
+
+
+@contextlib.contextmanager
+def _aligned(drive: DriveStore, fused: FusedStore, dem_dir: Path | None, cfg: GtgenConfig, cache: Path) -> Iterator[Alignment]:
+    """Yield the drive's alignment to its DEM (``dem_dir``, else the configured or default
+    one), or its unplaced outcomes when ``dem.enabled`` is false."""
+    if not cfg.dem.enabled:
+        if dem_dir is not None:
+            raise ConfigError(f"--dem {dem_dir} given with --no-dem (dem.enabled: false); expected one of them")
+        yield unplaced(drive, fused)
+        return
+    with align_drive(drive, fused, dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags]), cfg, cache) as al:
+        yield al
 
 
 def _check_grids(fused: FusedStore, cfg: GtgenConfig) -> None:
     """Refuse a fused store whose grids are not the config's (the dataset would mix them)."""
     from gtgen.config import RANGES
-    from gtgen.errors import ConfigError
 
     for r in RANGES:
         mine, theirs = cfg.grids.get(r), fused.config.grids.get(r)
@@ -101,9 +120,10 @@ def _record(al: Alignment, writer: ShardWriter) -> list[Kept]:
             writer.reject(o.t_ns, 0, p.reason, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad, **_qa(p))
         else:
             s = p.signals
-            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m)
+            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m), or no DEM (no placement at all)
             fit, rmse, C = (p.icp.fitness, p.icp.rmse_m, p.icp.T) if p.icp else (np.nan, np.nan, np.eye(4))
-            kept.append(Kept(o.k, p.T_crs_target, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
+            T = p.T_crs_target if p.T_crs_target is not None else np.full((4, 4), np.nan)
+            kept.append(Kept(o.k, T, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
     return kept
 
 
@@ -147,13 +167,13 @@ class _Blocks:
             self.writer.add_block(self.futures.pop(0).result())
 
 
-def drive_entry(drive_path: Path, drive: DriveStore, crs: str, al: Alignment, name: str | None = None,
-                suspect_tiles: list[str] | None = None) -> DriveEntry:
-    """Return the dataset's record of one drive."""
+def drive_entry(drive_path: Path, drive: DriveStore, al: Alignment, name: str | None = None) -> DriveEntry:
+    """Return the dataset's record of one drive (a drive without a DEM: no CRS, no alignment)."""
     bags = [BagRef(**b) for b in drive.bags]
     return DriveEntry(name=name or (Path(bags[0].path).stem if bags else drive_path.stem), drive_store=str(drive_path.resolve()),
-                      bags=bags, crs=crs, alignment=al.placement.alignment(), suspect_tiles=suspect_tiles or [],
-                      tiles=[_tile_entry(t) for t in al.tiles])
+                      bags=bags, crs=al.dem.crs if al.dem is not None else "",
+                      alignment=al.placement.alignment() if al.placement is not None else {},
+                      suspect_tiles=al.suspect_tiles, tiles=[_tile_entry(t) for t in al.tiles])
 
 
 def _tile_entry(t: TileJudgement) -> TileEntry:

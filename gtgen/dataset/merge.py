@@ -33,9 +33,12 @@ class DatasetMerger:
         split they have; return how many."""
         src = DatasetStore(dataset)
         if self.writer is None:
-            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size, src.jpeg_capacity,
-                                      scans=src.scan_dims)
+            self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size,
+                                      len(src.cameras), src.jpeg_capacity, scans=src.scan_dims)
             self._first = src.info
+        elif src.cameras != self._first.cameras:
+            raise GtgenError(f"drive {name!r} has the cameras {src.cameras}, the drives before it {self._first.cameras}: a dataset "
+                             "holds one camera rig; build the drives of each rig into their own dataset")
         elif src.jpeg_capacity != self.writer.jpeg_capacity:
             raise GtgenError(f"drive {name!r} stores images of up to {src.jpeg_capacity} bytes, the drives before it "
                              f"{self.writer.jpeg_capacity}: build every drive with the same extract.image_width and image_height")

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
+from gtgen.dem.tiles import NO_DEM
 from gtgen.errors import AlignmentError
 from gtgen.storage.drive import Fixes
 
@@ -80,7 +81,7 @@ def gnss_fit(cfg: GtgenConfig, fixes: Fixes, track: PoseTrack, crs: str) -> Plan
     from pyproj import Transformer
 
     if len(fixes.t_ns) == 0:
-        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
+        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM; {NO_DEM}")
     E, N = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(fixes.lon_deg, fixes.lat_deg)
     pos, _ = track.interpolate(fixes.t_ns, strict=False)
     enu = np.column_stack([E, N, fixes.alt_m])
@@ -92,5 +93,5 @@ def gnss_lonlat(cfg: GtgenConfig, fixes: Fixes) -> tuple[float, float]:
     """Return the median (lon, lat) [deg] of a drive's usable GNSS fixes."""
     ok = fixes.usable
     if not ok.any():
-        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM")
+        raise AlignmentError(f"GNSS absent for the whole drive (no fix on '{cfg.topics.gnss}'); dem-align needs GNSS to place the DEM; {NO_DEM}")
     return float(np.median(fixes.lon_deg[ok])), float(np.median(fixes.lat_deg[ok]))

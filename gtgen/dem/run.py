@@ -48,16 +48,18 @@ class Alignment:
     set aside, the ICP fitness of every sample ICP ran on, how to open the same DEM
     elsewhere, and the judgement of every tile near the drive."""
 
-    placement: DrivePlacement
+    placement: DrivePlacement | None  # None: no DEM (``unplaced``)
     outcomes: list[Outcome]
     suspect: frozenset[int]
     fitness: list[float]
-    dem: DemRef
+    dem: DemRef | None
     tiles: list[TileJudgement]
 
     @property
     def suspect_tiles(self) -> list[str]:
         """The set-aside tiles' paths."""
+        if self.placement is None:
+            return []
         names = self.placement.dem.tile_names
         return [names[i] for i in sorted(self.suspect)]
 
@@ -83,6 +85,17 @@ def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: Gtg
         yield Alignment(placement, outcomes, dem.exclude, fitness, ref, [tiles[i] for i in sorted(tiles)])
     finally:
         placement.dem.close()
+
+
+def unplaced(drive: DriveStore, fused: FusedStore) -> Alignment:
+    """Return the outcomes of a drive without a DEM (``dem.enabled: false``): every sample
+    fusion kept is kept, none is placed (no placement, no ICP, no signals)."""
+    s = drive.samples
+    reason_f = fused.reason()
+    none = {"disagreement": np.nan, "gnss_offset_m": np.nan, "vegetation_share": np.nan}
+    out = [Outcome(k, int(s.t_ns[k]), s.pos_odom_m[k], float(s.yaw_odom_rad[k]),
+                   Placement(codes.OK, signals=none) if reason_f[k] == codes.OK else int(reason_f[k])) for k in range(len(s))]
+    return Alignment(None, out, frozenset(), [], None, [])
 
 
 def _near(placement: DrivePlacement, drive: DriveStore, cfg: GtgenConfig) -> list[int]:

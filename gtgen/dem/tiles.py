@@ -101,12 +101,16 @@ def _read_header(gdal_path: str, file: Path) -> Tile:
         raise DemError(f"DEM tile '{gdal_path}' cannot be read: {err}".splitlines()[0]) from err
 
 
+# what a drive without a DEM (or without GNSS) does instead, said by every error that stops dem-align for the lack of one
+NO_DEM = "or pass --no-dem (dem.enabled: false) for a dataset of the fused labels alone"
+
+
 def dem_files(source: Path) -> list[tuple[str, Path]]:
     """Return (GDAL path, file) of every DEM tile of ``source``: a folder's rasters and the
     rasters inside its zip archives, or a single raster or zip file. The one rule of what
     is a DEM tile: dem-align reads these, and ``gtgen build`` hashes what they read."""
     if not source.exists():
-        raise InputNotFoundError(f"DEM '{source}' does not exist; pass --dem DIR (a folder of tiles, or one raster) or set dem.dir")
+        raise InputNotFoundError(f"DEM '{source}' does not exist; pass --dem DIR (a folder of tiles, or one raster), set dem.dir, {NO_DEM}")
     files = sorted(source.iterdir()) if source.is_dir() else [source]
     out = []
     for p in files:
@@ -129,7 +133,7 @@ def default_dem_dir(cfg_dir: str | None, bags: list[Path]) -> Path:
     if cfg_dir:
         return Path(cfg_dir)
     if not bags:
-        raise DemError("no DEM folder: set dem.dir or pass --dem DIR")
+        raise DemError(f"no DEM folder: set dem.dir, pass --dem DIR, {NO_DEM}")
     return Path(bags[0]).parent / "dem"
 
 

@@ -258,6 +258,10 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, o
             raise GtgenError(f"--samples {bad[0]} is not a sample of '{dataset}' (0..{ds.n_samples - 1})")
     groups = [(f"samples/{k}", np.array([k])) for k in samples] if samples is not None else \
              [(d.name or f"drive{i}", np.nonzero(drive == i)[0]) for i, d in enumerate(ds.info.drives)]
+    unplaced = sorted({ds.info.drives[int(drive[k])].name for _, ks in groups for k in ks if not ds.info.drives[int(drive[k])].crs})
+    if unplaced:
+        raise GtgenError(f"drive(s) {unplaced} of '{dataset}' have no georeference (built without a DEM: --no-dem), so there is no "
+                         "map to export them into; export geotiff needs drives placed on a DEM (export mcap plays any dataset)")
     files = [out / name / r / f"{layer}.tif" for name, ks in groups if len(ks) for r in RANGES for layer in LAYERS]
     for f in files:  # before any work: nothing of the user's is replaced
         check_replace(f, overwrite)

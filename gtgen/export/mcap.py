@@ -4,7 +4,7 @@ Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
 
 - ``/tf``: ``map -> target`` (the sample's placement after ICP, ``meta/T_crs_target``,
   with ``map`` the drive's working CRS shifted to its first sample so that coordinates
-  stay small), ``target -> base_link`` (``inputs/T_target_base``) and
+  stay small; a drive without a DEM: its odom frame, shifted alike), ``target -> base_link`` (``inputs/T_target_base``) and
   ``base_link -> camera_<name>`` (``inputs/T_base_cam``);
 - ``/gtgen/labels/<range>``: ``grid_map_msgs/GridMap`` in ``target`` with the layers
   ``elevation``, ``risk``, ``confidence``, ``region``, ``count``, ``last_dt_s`` and
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.image import file_size
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
-from gtgen.geometry import matrix_to_quat
+from gtgen.geometry import matrix_to_quat, yaw_transform
 from gtgen.runtime.output import PARTIAL, remove, signature, stage_output
 from gtgen.runtime.progress import track
 from gtgen.storage.dataset import DatasetStore, jpeg_files
@@ -84,8 +84,8 @@ def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport
     if out.suffix != ".mcap":
         raise GtgenError(f"output '{out}' must be a file ending in .mcap")
     cfg = ds.config
-    cams = list(ds.info.cameras)
-    t_ns, drive, T = ds.meta("t_ns"), ds.meta("drive"), ds.meta("T_crs_target")
+    cams = ds.cameras
+    t_ns, drive, T = ds.meta("t_ns"), ds.meta("drive"), _map_poses(ds)
     order = np.lexsort((t_ns, drive))
     origin = {int(d): T[order[np.nonzero(drive[order] == d)[0][0]], :3, 3].copy() for d in np.unique(drive)}
     offsets = ds.voxel_offsets()
@@ -115,6 +115,17 @@ def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport
     return res
 
 
+def _map_poses(ds: DatasetStore) -> NDArray[np.float64]:
+    """Return every sample's T_map_target before the drive's shift: its placement in the
+    working CRS, or for a sample without one (a drive without a DEM) its pose in odom."""
+    T = ds.meta("T_crs_target").copy()
+    unplaced = ~np.isfinite(T).all(axis=(1, 2))
+    if unplaced.any():
+        pos, yaw = ds.meta("pos_odom_m")[unplaced], ds.meta("yaw_odom_rad")[unplaced]
+        T[unplaced] = [yaw_transform(*p, y) for p, y in zip(pos, yaw)]
+    return T
+
+
 @contextlib.contextmanager
 def _scratch(folder: Path) -> Iterator[None]:
     """Make ``folder`` anew for the block, and remove it after."""
@@ -132,7 +143,7 @@ def _read_block(ds: DatasetStore, ks: NDArray) -> dict:
     want = [("labels", r, v) for r in RANGES for v in LABEL_LAYERS.values()]
     want += [("xracer", r, v) for r in RANGES for v in XRACER_LAYERS.values()] + [("dem", r, "elevation_m") for r in RANGES]
     out: dict = {(kind, r, v): ds.grids(kind, r, v, ks) for kind, r, v in want}
-    out.update({n: ds.input_rows(n, ks) for n in ("jpeg", "jpeg_nbytes", "K", "T_base_cam", "T_target_base")})
+    out.update({n: ds.input_rows(n, ks) for n in ("T_target_base",) + (("jpeg", "jpeg_nbytes", "K", "T_base_cam") if ds.cameras else ())})
     return out
 
 
@@ -157,7 +168,7 @@ def _write_sample(fac, topics: _Topics, block: dict, i: int, k: int, t: int, T_m
         topics.write(f"/gtgen/xracer/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
         grid = fac.foxglove_grid(t, "target", gr.resolution_m, {n: layers[n] for n in GRID_LAYERS})
         topics.write(f"/gtgen/labels/{r}/grid", "foxglove_msgs/msg/Grid", t, fac.serialize(grid, "foxglove_msgs/msg/Grid"))
-    for ci, (c, jpeg) in enumerate(zip(cams, jpeg_files(block["jpeg"][i], block["jpeg_nbytes"][i]))):
+    for ci, (c, jpeg) in enumerate(zip(cams, jpeg_files(block["jpeg"][i], block["jpeg_nbytes"][i]) if cams else [])):
         msg = fac.compressed_image(t, f"camera_{c}", jpeg, k)  # the stored JPEG as it is
         topics.write(f"/gtgen/camera_{c}/image/compressed", "sensor_msgs/msg/CompressedImage", t,
                      fac.serialize(msg, "sensor_msgs/msg/CompressedImage"))

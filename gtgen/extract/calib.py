@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.tf import TfBuffer
-from gtgen.config import CAMERAS, GtgenConfig
+from gtgen.config import GtgenConfig
 from gtgen.errors import PoseError, TopicError
 from gtgen.extract.images import StoredCamera
 from gtgen.extract.scan import DUPLICATE, Scan
@@ -98,7 +98,7 @@ def drop_untransformable(cfg: GtgenConfig, scan: Scan, tf: TfBuffer) -> None:
         topic_of[role].drop(NO_TRANSFORM, int(sum(1 for m, k in zip(meta, ok) if m[1] and not k)))
         scan.map_meta[role] = [(m[0], m[1] and bool(k), *m[2:]) for m, k in zip(meta, ok)]
     for role, frames, target in [("voxel_map", scan.voxel_frames, tp.odom_frame)] + \
-            [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in CAMERAS] + \
+            [(f"camera.{c}", [scan.frames.get(f"camera.{c}", "")] * len(scan.stamps[f"camera.{c}"]), tp.base_frame) for c in tp.cameras] + \
             [(r, [scan.frames.get(r, "")] * len(scan.stamps[r]), tp.odom_frame) for r in sorted(scan.stamps) if r.startswith("lidar.")]:
         if role not in topic_of:
             continue
@@ -140,13 +140,15 @@ def map_to_odom(cfg: GtgenConfig, tf: TfBuffer, center: NDArray, yaw: float, fra
 
 
 def extrinsics(cfg: GtgenConfig, scan: Scan, tf: TfBuffer, image_t: NDArray, cams: list[StoredCamera]) -> tuple[NDArray, NDArray]:
-    """Return the intrinsics K (4, 3, 3) of the stored (rectified) images ``cams``, and
-    per sample T_base_cam (S, 4, 4, 4) at each image's stamp ``image_t`` (S, 4)."""
+    """Return the intrinsics K (C, 3, 3) of the stored (rectified) images of the C cameras
+    ``cams``, and per sample T_base_cam (S, C, 4, 4) at each image's stamp ``image_t`` (S, C)."""
     Ts = []
-    for c_i, c in enumerate(CAMERAS):
+    for c_i, c in enumerate(cfg.topics.camera_names):
         frame = scan.frames.get(f"camera.{c}") or frame_id(scan.info[c].header.frame_id)  # type: ignore[attr-defined]
         T, ok = tf.lookup(cfg.topics.base_frame, frame, image_t[:, c_i])
         if not ok.all():
             raise TopicError(f"camera '{c}': no transform from '{cfg.topics.base_frame}' to '{frame}': {tf.why_not(cfg.topics.base_frame, frame)}")
         Ts.append(T)
+    if not cams:
+        return np.zeros((0, 3, 3)), np.zeros((len(image_t), 0, 4, 4))
     return np.stack([cam.K for cam in cams]), np.stack(Ts, axis=1)

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.decode.image import decode_file, encode_jpeg, file_size, intrinsics, is_jpeg, lens, resize_image
-from gtgen.config import CAMERAS, GtgenConfig
+from gtgen.config import GtgenConfig
 from gtgen.errors import DecodeError, TopicError
 from gtgen.geometry import rescale_K
 from gtgen.lens import Lens, Remap, rectify_remap
@@ -97,12 +97,12 @@ class StoredCamera:
 
 
 def stored_cameras(cfg: GtgenConfig, info: dict[str, object]) -> list[StoredCamera]:
-    """Return the four cameras (``CAMERAS`` order) from their CameraInfo messages ``info``;
-    raise TopicError for a camera without one, DecodeError for a CameraInfo that is no
-    calibration or has a lens gtgen cannot undistort."""
+    """Return the configured cameras (``topics.cameras``' order) from their CameraInfo
+    messages ``info``; raise TopicError for a camera without one, DecodeError for a
+    CameraInfo that is no calibration or has a lens gtgen cannot undistort."""
     ex = cfg.extract
     cams = []
-    for c in CAMERAS:
+    for c in cfg.topics.camera_names:
         msg = info.get(c)
         if msg is None:
             raise TopicError(f"role 'camera_info.{c}': no CameraInfo on '{cfg.topics.cameras[c].info}'")

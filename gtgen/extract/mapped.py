@@ -3,11 +3,11 @@
 
 Why inside extract and not a stage of its own: extract decides which maps a drive keeps
 (``extract.map_rate_hz`` and each sample's map at t), so the mapping makes exactly those
-and nothing else, at the front camera's stamps, with no maps written out and read back;
+and nothing else, at the reference sensor's stamps, with no maps written out and read back;
 everything after extract (fuse, dem-align, the dataset) reads them as it reads X-Racer's.
 
-``declare`` gives the plan a map of each lidar-made range (and a voxel map) at every front
-camera stamp, as if a stack published them there; after the plan, ``map_pass`` reads the
+``declare`` gives the plan a map of each lidar-made range (and a voxel map) at every stamp
+of the reference sensor (a camera, else the first lidar), as if a stack published them there; after the plan, ``map_pass`` reads the
 raw scans again in time segments on the pool (each starting ``mapping.memory_s`` early so
 its cells are warm; maps do not depend on the split) and writes the kept maps and voxel
 maps into the store.
@@ -31,7 +31,7 @@ from gtgen.bag.tf import TfBuffer
 from gtgen.config import RANGES, GtgenConfig
 from gtgen.extract.lidar import deskew
 from gtgen.extract.scan import Scan
-from gtgen.extract.select import Plan
+from gtgen.extract.select import Plan, reference_stamps
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.mapping.mapper import Mapper
 from gtgen.runtime.pool import Pool
@@ -43,11 +43,12 @@ REORDER_NS = 500_000_000  # scans are put in stamp order within this much of rec
 
 def declare(cfg: GtgenConfig, scan: Scan) -> None:
     """Give ``scan`` a usable map of each lidar-made range, and a voxel map, at every usable
-    front camera stamp (the sample candidates' times) from the first raw scan on, in odom."""
+    stamp of the reference sensor (the sample candidates' times: ``extract.reference``) from
+    the first raw scan on, in odom."""
     made = cfg.topics.from_lidar()
     first = min((min((s for s in v if s >= 0), default=np.iinfo(np.int64).max) for r, v in scan.stamps.items() if r.startswith("lidar.")),
                 default=np.iinfo(np.int64).min)
-    t = [s for s in scan.stamps["camera.front"] if s >= first]
+    t = [int(s) for s in reference_stamps(cfg, scan) if s >= first]
     odom = cfg.topics.odom_frame
     for r in RANGES:
         if r in made:

@@ -15,11 +15,11 @@ from typing import Any
 
 from gtgen import __version__, codes
 from gtgen.bag.reader import BagSet, hash_bag
-from gtgen.config import CAMERAS, RANGES, GtgenConfig
+from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import BagError
 from gtgen.extract import calib, mapped
 from gtgen.extract.images import stored_cameras
-from gtgen.extract.roles import mapping_topics, resolve_roles
+from gtgen.extract.roles import mapping_topics, reference_role, resolve_roles
 from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
@@ -42,6 +42,7 @@ class ExtractResult:
     warnings: list[str]
     poses: str = ""  # where the poses came from
     reread: int = 0  # kept messages no slice had staged, read in a second pass
+    reference: str = ""  # the sensor sample times snap to (extract.reference), and its topic
     bag_sha256: list[str] = field(default_factory=list)  # of each bag, in the order given
 
     def report(self) -> dict[str, Any]:
@@ -80,8 +81,15 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
         reread = write_large(w, paths, cfg, roles, scan, tf, track, plan, parts, pool, lidar, cams)
         result = _result(out, scan, plan, scan.warnings + warnings, reread, bag_sha256, hashes)
         result.poses = poses
+        ref = reference_role(cfg, roles.values())
+        what = f"camera '{ref.split('.')[1]}'" if ref.startswith("camera.") else "the lidar"
+        result.reference = f"{what} on '{_topic(roles, ref)}'"
         _finish(w, paths, cfg, result)
     return result
+
+
+def _topic(roles: dict[str, str], role: str) -> str:
+    return next(t for t, r in roles.items() if r == role)
 
 
 def _open(paths: list[Path], cfg: GtgenConfig, workers: int, n_slices: int | None) -> tuple[dict[str, str], list, Frames, list[str]]:
@@ -128,5 +136,5 @@ def _finish(w: DriveWriter, paths: list[Path], cfg: GtgenConfig, result: Extract
         gtgen_version=__version__,
         bags=[{"path": str(p.resolve()), "sha256": h} for p, h in zip(paths, result.bag_sha256)],
         config=cfg.model_dump(mode="json"), report=result.report(), reasons=codes.REASONS,
-        image_size=[cfg.extract.image_width, cfg.extract.image_height], cameras=list(CAMERAS),
+        image_size=[cfg.extract.image_width, cfg.extract.image_height], cameras=cfg.topics.camera_names,
     )

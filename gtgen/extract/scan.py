@@ -32,7 +32,7 @@ from gtgen.bag.reader import BagSet, Record, stamp_ns
 from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
 from gtgen.config import GtgenConfig
 from gtgen.errors import DecodeError
-from gtgen.extract.roles import is_large
+from gtgen.extract.roles import is_large, reference_role
 from gtgen.extract.stage import Staged, Stager
 
 SLICE_S = 20.0  # longest record-time slice of a pass [s]: bounds the memory of one job
@@ -342,7 +342,7 @@ def scan_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], frame
         if store is None:
             scan = scan_messages(bags.records(list(roles), start, stop), cfg, roles)
         else:
-            with Stager(store, k, cfg) as stager:
+            with Stager(store, k, cfg, reference_role(cfg, roles.values())) as stager:
                 scan = scan_messages(bags.records(list(roles), start, stop), cfg, roles, stager)
             scan.staged = stager.result
         scan.warnings = list(bags.warnings)
@@ -427,7 +427,7 @@ class _Scanner:
             self.scan.stamps[role].append(t)
             self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
             if self.stager is not None:
-                self.stager.add_scan(role, i, *data)
+                self.stager.add_scan(role, i, t, *data)
 
     def _stamp(self, role: str, msg: object) -> int:
         if role in ("tf_static", "tf"):

@@ -1,6 +1,7 @@
-"""Sample selection: candidate times every ``stride_m`` of travel, snapped to the front
-camera, kept only where a pose, both maps, the voxel map and all four images exist within
-their skew tolerances; every rejected candidate gets a reason code. Also which maps are
+"""Sample selection: candidate times every ``stride_m`` of travel, snapped to the reference
+sensor (``extract.reference``: a camera, else the first lidar's scans), kept only where a
+pose, both maps, the voxel map and every configured camera's image exist within their
+skew tolerances; every rejected candidate gets a reason code. Also which maps are
 kept (thinned to ``extract.map_rate_hz``, plus each sample's map at t) and which raw
 scans (``extract.lidar.kept_scans``; they are optional: no sample is rejected for them)."""
 
@@ -13,8 +14,9 @@ from numpy.typing import NDArray
 
 from gtgen import codes
 from gtgen.bag.poses import PoseTrack
-from gtgen.config import CAMERAS, GtgenConfig
+from gtgen.config import GtgenConfig
 from gtgen.extract.lidar import kept_scans
+from gtgen.extract.roles import reference_role
 from gtgen.extract.scan import Scan
 from gtgen.extract.stage import period_ns
 
@@ -46,7 +48,7 @@ class Plan:
     t: NDArray  # (S,)
     cand_t: NDArray
     cand_reason: NDArray
-    image_ord: NDArray  # (S, 4) ordinal of the image message per camera
+    image_ord: NDArray  # (S, n_cameras) ordinal of the image message per camera (topics.cameras' order)
     image_t: NDArray
     voxel_t: NDArray  # (S,)
     voxel_index: NDArray  # (S,) index into the kept voxel maps
@@ -58,6 +60,7 @@ class Plan:
     scan_ord: dict[str, NDArray]  # per lidar role, the kept raw scans' ordinals, sorted by stamp
     scan_t: dict[str, NDArray]  # their stamps
     scan_dist: dict[str, NDArray]  # the travel at each [m]
+    cameras: list[str]  # the cameras of image_ord's columns
 
     def skews(self) -> dict[str, float]:
         """Return the largest and mean image and voxel-map skews to the sample times [s]."""
@@ -65,20 +68,25 @@ class Plan:
             return {}
         img = np.abs(self.image_t - self.t[:, None]) * 1e-9
         vox = np.abs(self.voxel_t - self.t) * 1e-9
-        return {"image_max": round(float(img.max()), 4), "image_mean": round(float(img.mean()), 4),
-                "voxel_max": round(float(vox.max()), 4), "voxel_mean": round(float(vox.mean()), 4)}
+        out = {"image_max": round(float(img.max()), 4), "image_mean": round(float(img.mean()), 4)} if img.size else {}
+        return {**out, "voxel_max": round(float(vox.max()), 4), "voxel_mean": round(float(vox.mean()), 4)}
+
+
+def reference_stamps(cfg: GtgenConfig, scan: Scan) -> NDArray[np.int64]:
+    """Return the usable stamps of the reference sensor (``GtgenConfig.reference``), sorted."""
+    return _sorted_valid(scan.stamps[reference_role(cfg, (s.role for s in scan.stats.values()))])[0]
 
 
 def _candidates(cfg: GtgenConfig, track: PoseTrack, scan: Scan) -> tuple[NDArray, NDArray]:
-    """Return candidate times (the travel reaches each stride mark, snapped to the front
-    camera so that images are never interpolated) and their reasons (pose checked)."""
+    """Return candidate times (the travel reaches each stride mark, snapped to the reference
+    sensor so that its data are never interpolated) and their reasons (pose checked)."""
     dist = track.distance()
     marks = np.arange(0.0, dist[-1] + 1e-9, cfg.extract.stride_m) if len(dist) else np.zeros(0)
     cand = np.interp(marks, dist, track.t_ns.astype(np.float64)).astype(np.int64) if len(marks) else np.zeros(0, np.int64)
     cand = np.unique(cand)
-    front_t, _ = _sorted_valid(scan.stamps["camera.front"])
-    fi, _ = _nearest(front_t, cand)
-    t = np.where(fi >= 0, front_t[np.maximum(fi, 0)], cand) if len(front_t) else cand
+    ref_t = reference_stamps(cfg, scan)
+    fi, _ = _nearest(ref_t, cand)
+    t = np.where(fi >= 0, ref_t[np.maximum(fi, 0)], cand) if len(ref_t) else cand
     t = np.unique(t)
     reason = np.zeros(len(t), np.uint8)
     reason[~track.covered(t)] = codes.NO_POSE
@@ -87,9 +95,10 @@ def _candidates(cfg: GtgenConfig, track: PoseTrack, scan: Scan) -> tuple[NDArray
 
 def _images(cfg: GtgenConfig, scan: Scan, t: NDArray, reason: NDArray) -> tuple[NDArray, NDArray]:
     """Return each candidate's image ordinal and stamp per camera; mark NO_IMAGE."""
-    img_ord = np.full((len(t), 4), -1, np.int64)
-    img_t = np.zeros((len(t), 4), np.int64)
-    for c_i, c in enumerate(CAMERAS):
+    n = len(cfg.topics.cameras)
+    img_ord = np.full((len(t), n), -1, np.int64)
+    img_t = np.zeros((len(t), n), np.int64)
+    for c_i, c in enumerate(cfg.topics.camera_names):
         s, o = _sorted_valid(scan.stamps[f"camera.{c}"])
         i, d = _nearest(s, t)
         ok = (i >= 0) & (d <= int(cfg.extract.image_skew_s * 1e9))
@@ -157,4 +166,5 @@ def select(cfg: GtgenConfig, track: PoseTrack, scan: Scan) -> Plan:
         voxel_ord=vo[vk] if len(vo) else empty, voxel_map_t=vs[vk] if len(vs) else empty,
         map_ord={r: k[0] for r, k in kept.items()}, map_t={r: k[1] for r, k in kept.items()},
         sample_map={r: k[2] for r, k in kept.items()}, scan_ord=scan_ord, scan_t=scan_t, scan_dist=scan_dist,
+        cameras=cfg.topics.camera_names,
     )

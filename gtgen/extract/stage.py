@@ -3,8 +3,8 @@
 The plan (sample times, kept maps) needs every stamp of the drive, so it exists only
 once all slices are read. Rather than read the bags a second time, each slice stages
 what the plan will likely keep while it reads: every image, every voxel cloud and raw scan, the
-earliest map of each thinning period and, for each front-camera frame (a sample time
-is always one), the latest map stamped at or before it. Maps and voxel clouds are
+earliest map of each thinning period and, for each frame of the reference sensor (a
+sample time is always one: ``extract.reference``), the latest map stamped at or before it. Maps and voxel clouds are
 written as the encoded chunk files they will be in the store
 (``storage.chunks.encode_chunk``), and once the plan exists the kept ones are moved into
 place by rename; images are kept as the camera sent them (``extract.images``: their
@@ -76,15 +76,16 @@ class Stager:
     """Stages images, voxel clouds and likely maps of one slice as encoded chunk files in
     ``<store>/stage/<k>`` (written on threads)."""
 
-    def __init__(self, store: str, k: int, cfg: GtgenConfig) -> None:
+    def __init__(self, store: str, k: int, cfg: GtgenConfig, reference: str) -> None:
         self.cfg = cfg
+        self.reference = reference  # the role whose stamps are the sample times
         self.result = Staged(k, str(Path(store) / STAGE / str(k)))
         tp = cfg.topics
         self.layer_names = [tp.layers.elevation, tp.layers.risk, tp.layers.confidence]
         self.period = period_ns(cfg)
         self.bin_first: dict[str, dict[int, int]] = defaultdict(dict)  # role -> {period: earliest stamp staged}
         self.held: dict[str, list[tuple[int, int, object]]] = defaultdict(list)  # role -> [(stamp, ordinal, msg)]
-        self.pending: dict[str, list[int]] = defaultdict(list)  # role -> front stamps awaiting their map
+        self.pending: dict[str, list[int]] = defaultdict(list)  # role -> reference stamps awaiting their map
         self.made: set[Path] = set()
 
     def __enter__(self) -> Stager:
@@ -110,10 +111,14 @@ class Stager:
         make_parent(file, self.made)
         self.writes.submit(write_source, file, src)
         self.result.ordinals[role].add(i)
-        if role == "camera.front":  # a sample time is always a front frame
-            for r in RANGES:
-                self.pending[f"map.{r}"].append(t)
-                self._resolve(f"map.{r}")
+        if role == self.reference:
+            self._sample_time(t)
+
+    def _sample_time(self, t: int) -> None:
+        """A reference frame at ``t``: a sample may be there, and want each range's map at t."""
+        for r in RANGES:
+            self.pending[f"map.{r}"].append(t)
+            self._resolve(f"map.{r}")
 
     def add_voxels(self, i: int, t: int, pts: NDArray[np.float32], frame: str) -> None:
         """Stage voxel map ``i`` (slice ordinal) stamped ``t``: its points in ``frame``."""
@@ -127,9 +132,11 @@ class Stager:
         self._write(self.result.chunk("voxel_map", i), padded(pts, self.cfg.shards.max_voxel_points))
         self.result.voxels[i] = (len(pts), t, frame)
 
-    def add_scan(self, role: str, i: int, pts: NDArray[np.float32], dt_s: NDArray[np.float32] | None) -> None:
-        """Stage raw scan ``i`` (slice ordinal) of lidar ``role``: its points in its sensor
-        frame, and each point's time after the stamp [s] if the cloud has them."""
+    def add_scan(self, role: str, i: int, t: int, pts: NDArray[np.float32], dt_s: NDArray[np.float32] | None) -> None:
+        """Stage raw scan ``i`` (slice ordinal) of lidar ``role`` stamped ``t``: its points in
+        its sensor frame, and each point's time after the stamp [s] if the cloud has them."""
+        if role == self.reference:
+            self._sample_time(t)
         if dt_s is not None and len(dt_s) and float(np.ptp(dt_s)) > 0:
             f = self.result.raw_scan(role, i)
             make_parent(f, self.made)
@@ -153,7 +160,7 @@ class Stager:
         self._resolve(role)
 
     def _resolve(self, role: str) -> None:
-        """Stage, for each front frame older than the newest map, the latest map stamped at
+        """Stage, for each reference frame older than the newest map, the latest map stamped at
         or before it; keep held only the maps a later frame may still want."""
         held = self.held[role]
         if not held:

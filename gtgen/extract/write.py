@@ -21,7 +21,7 @@ from gtgen.bag.decode.tf import frame_id
 from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, stamp_ns
 from gtgen.bag.tf import TfBuffer
-from gtgen.config import CAMERAS, RANGES, GtgenConfig
+from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import BagError, DecodeError
 from gtgen.extract import mapped
 from gtgen.extract.calib import map_to_odom
@@ -58,13 +58,13 @@ def write_small(w: DriveWriter, scan: Scan, track: PoseTrack, plan: Plan, cams: 
     dist = np.interp(plan.t.astype(np.float64), track.t_ns.astype(np.float64), track.distance())
     samples = DriveSamples(plan.t, pos, quat, dist, {r: plan.sample_map[r] for r in RANGES}, plan.image_t, plan.voxel_t,
                            plan.voxel_index, T_base_cam)
-    w.write_samples(samples, plan.voxel_map_t, K, np.array([cam.size for cam in cams], np.int64))
+    w.write_samples(samples, plan.voxel_map_t, K, np.array([cam.size for cam in cams], np.int64).reshape(-1, 2))
 
 
 def _wanted(plan: Plan) -> Want:
     """Return which message ordinal of each large role fills which samples, maps, voxel maps."""
     want: Want = defaultdict(lambda: defaultdict(list))
-    for c_i, c in enumerate(CAMERAS):
+    for c_i, c in enumerate(plan.cameras):
         for s_i, o in enumerate(plan.image_ord[:, c_i]):
             want[f"camera.{c}"][int(o)].append(s_i)
     for v, o in enumerate(plan.voxel_ord):
@@ -116,7 +116,7 @@ class _Large:
                  cams: list[StoredCamera]) -> None:
         self.w, self.tmp, self.cfg, self.scan, self.plan, self.slices, self.tf = w, w.path, cfg, scan, plan, slices, tf
         self.cams = cams
-        self.jpeg_nbytes = np.zeros((len(plan.t), len(CAMERAS)), np.int64)
+        self.jpeg_nbytes = np.zeros((len(plan.t), len(cams)), np.int64)
         self.centers = {r: np.zeros((len(plan.map_t[r]), 3)) for r in RANGES}
         self.yaws = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
         self.z0 = {r: np.zeros(len(plan.map_t[r])) for r in RANGES}
@@ -139,7 +139,7 @@ class _Large:
 
     def create_arrays(self) -> None:
         maps = {r: (len(self.plan.map_t[r]), *self.scan.map_shape[f"map.{r}"], self.cfg.topics.odom_frame) for r in RANGES}
-        self.w.create_large(len(self.plan.t), capacity(self.cfg), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points,
+        self.w.create_large(len(self.plan.t), len(self.cams), capacity(self.cfg), maps, len(self.plan.voxel_ord), self.cfg.shards.max_voxel_points,
                             len(self.scan_meta), self.cfg.extract.max_scan_points)
         self.vox = self.w.voxels()
 
@@ -147,8 +147,8 @@ class _Large:
         """Move what the slices staged into place (the images converted to their stored
         JPEG files on the pool); note in ``missing`` what they did not stage."""
         jobs: list[tuple[str, int, list[int]]] = []  # (staged frame, camera, samples)
-        for c_i, c in enumerate(CAMERAS):
-            role = f"camera.{c}"
+        for c_i, cam in enumerate(self.cams):
+            role = f"camera.{cam.name}"
             for o, targets in want[role].items():
                 stg, i = self.slices.locate(role, o)
                 if stg is None or i not in stg.ordinals[role]:
@@ -324,7 +324,7 @@ def read_slice(paths: list[Path], cfg: GtgenConfig, roles: dict[str, str], store
             if msg is None:
                 raise DecodeError(f"{topic}: message {o} was selected but does not decode: {err}")
             if role.startswith("camera."):
-                c_i = CAMERAS.index(role.split(".")[1])
+                c_i = next(i for i, cam in enumerate(cams) if cam.name == role.split(".")[1])
                 jpeg = cams[c_i].stored(image_source(msg, msgtype))
                 w.put_image(cams[c_i].padded(jpeg), c_i, targets)
                 out.jpeg_nbytes.update({(s_i, c_i): len(jpeg) for s_i in targets})

@@ -43,11 +43,17 @@ class Mapper:
         self.add_odom(*self.to_odom(points_base, origin_base, T_odom_base), T_odom_base[:2, 3], t_ns)
 
     def to_odom(self, points_base: NDArray, origin_base: NDArray, T_odom_base: NDArray) -> tuple[NDArray, NDArray]:
-        """Return a sweep's points in odom (the body masked out) and their ranges from the sensor."""
+        """Return a sweep's points in odom (the body masked out, and those higher above the
+        base than ``mapping.max_height_m``) and their ranges from the sensor."""
         p = np.asarray(points_base, np.float64)
         p = p[~body_mask(p, self.cfg) & np.isfinite(p).all(axis=1)]
         rng = np.linalg.norm(p - np.asarray(origin_base, np.float64)[None, :], axis=1).astype(np.float32)
-        return p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3], rng
+        odom = p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3]
+        top = self.cfg.mapping.max_height_m
+        if top is not None:  # above the base in odom's z (up), whatever the base's roll and pitch
+            low = odom[:, 2] - T_odom_base[2, 3] <= top
+            odom, rng = odom[low], rng[low]
+        return odom, rng
 
     def add_odom(self, odom: NDArray, rng: NDArray, center_xy: NDArray, t_ns: int) -> None:
         """Add points already in odom (``to_odom`` of one sweep or of several merged, stamped

@@ -33,8 +33,8 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
     ax[0].set_ylabel("cells [% of the grid]")
     ax[0].set_title("label coverage per region")
     ax[0].legend(title="range")
-    allfit = np.concatenate([fit, rfit[np.isfinite(rfit)]])
-    ax[1].hist(allfit, bins=30, range=(0, 1), color="tab:blue")
+    allfit = np.concatenate([fit, rfit])
+    ax[1].hist(allfit[np.isfinite(allfit)], bins=30, range=(0, 1), color="tab:blue")
     ax[1].set_title("ICP fitness (all aligned samples)")
     ax[1].set_xlabel("ICP fitness [0..1]")
     ax[1].set_ylabel("samples")
@@ -50,6 +50,9 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
     plt.close(fig)
     if rep.card["samples_kept"]:
         en = ds.meta("crs_en_m")
+        frame = "DEM CRS"
+        if not np.isfinite(en).all():  # samples without a placement (no DEM): where odometry has them
+            en, frame = ds.meta("pos_odom_m")[:, :2], "odom, no DEM"
         lo, hi = en.min(axis=0) - 120, en.max(axis=0) + 120  # the short grids' reach
         w, h = hi - lo
         fig, ax = plt.subplots(figsize=(10, float(np.clip(8.5 * h / w, 3.5, 12)) + 1))
@@ -57,15 +60,15 @@ def figures(ds: DatasetStore, rep, out_dir: Path, fit, rfit, rej_reason, overwri
         ax.set_ylim(lo[1], hi[1])
         icp = np.isfinite(fit)
         sc = ax.scatter(en[icp, 0], en[icp, 1], c=fit[icp], cmap="viridis", vmin=0, vmax=1, s=12)
-        if not icp.all():  # kept by odometry over set-aside tiles (dem.carry_over_m)
-            ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="kept by odometry, no ICP")
+        if not icp.all():  # kept by odometry over set-aside tiles (dem.carry_over_m), or no DEM
+            ax.scatter(en[~icp, 0], en[~icp, 1], c="tab:gray", s=12, label="no ICP" if frame != "DEM CRS" else "kept by odometry, no ICP")
         _draw_tiles(ax, ds)
         ax.legend(fontsize=8, loc="upper right")
         ax.set_aspect("equal")
         ax.ticklabel_format(useOffset=False, style="plain")  # whole easting / northing, not an offset
         ax.tick_params(axis="x", rotation=30)
-        ax.set_xlabel("easting [m] (DEM CRS)")
-        ax.set_ylabel("northing [m] (DEM CRS)")
+        ax.set_xlabel(f"easting [m] ({frame})" if frame == "DEM CRS" else f"x [m] ({frame})")
+        ax.set_ylabel(f"northing [m] ({frame})" if frame == "DEM CRS" else f"y [m] ({frame})")
         ax.set_title("sample positions, colour = ICP fitness; DEM tiles by status, the corrected and set-aside ones with\n"
                      "their borders' height steps as read -> put back and measured offset dx, dy, dz +- 1 sigma [m]", fontsize=9)
         fig.colorbar(sc, ax=ax, shrink=0.8, label="ICP fitness [0..1]")

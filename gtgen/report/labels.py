@@ -36,10 +36,10 @@ class LabelErrors:
             k = int(k)
             T_odom_target = yaw_transform(*pos[k], yaw[k])
             T_true = truth.T_crs_odom(int(t[k])) @ T_odom_target
-            # alignment error at the vehicle and 50 m ahead
-            for pt, lst in ((np.array([0.0, 0, 0, 1]), self.h_err), (np.array([50.0, 0, 0, 1]), self.h_err_far)):
-                lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
-            self.v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
+            if np.isfinite(Tct[k]).all():  # alignment error at the vehicle and 50 m ahead (none without a DEM)
+                for pt, lst in ((np.array([0.0, 0, 0, 1]), self.h_err), (np.array([50.0, 0, 0, 1]), self.h_err_far)):
+                    lst.append(float(np.linalg.norm((Tct[k] @ pt)[:2] - (T_true @ pt)[:2])))
+                self.v_err.append(float(Tct[k][2, 3] - T_true[2, 3]))
             for r in RANGES:
                 _add_sample_errors(ds, cfg, truth, k, int(t[k]), r, T_odom_target, self.acc[r], self.fused_vs_single[r], self.cover[r],
                                    self.fatal[r])

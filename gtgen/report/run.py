@@ -60,12 +60,13 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     rej_reason = ds.rejected("reason")
     fit = ds.meta("icp_fitness")
     rfit = ds.rejected("icp_fitness")
+    placed = np.isfinite(ds.meta("T_crs_target")[:, 0, 0])  # a drive without a DEM places none
     idx = _spread(np.arange(S), max_truth_samples)
     split = ds.meta("split")
     rep.card = {
         "dataset": str(dataset),
         "samples_kept": S,
-        "samples_kept_by_odometry": int(np.isnan(fit).sum()),  # over set-aside tiles, no ICP (dem.carry_over_m)
+        "samples_kept_by_odometry": int((np.isnan(fit) & placed).sum()),  # over set-aside tiles, no ICP (dem.carry_over_m)
         "samples_rejected": {codes.reason_name(c): int((rej_reason == c).sum()) for c in np.unique(rej_reason)},
         "split": {name: int((split == code).sum()) for code, name in codes.SPLITS.items()},
         "split_by_drive": _split_by_drive(ds, split),
@@ -79,6 +80,9 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     if S:  # the regions' shares of the labelled cells [%], beside the paper's (Tab. I)
         rep.card["region_share_pct"] = {r: region_shares(rep.card["coverage"][r]) for r in RANGES}
         rep.card["paper_region_share_pct"] = PAPER_REGION_SHARE_PCT
+    if S and not placed.any():  # dem-align --no-dem: the unobserved cells stay unlabelled
+        none = {r: 100 * rep.card["coverage"][r][codes.REGIONS[codes.NO_LABEL]] for r in RANGES}
+        rep.card["dem"] = f"no DEM: {none['micro']:.1f} % (micro) / {none['short']:.1f} % (short) of the cells unlabelled"
     truths = {d: t for d, entry in enumerate(ds.info.drives) if (t := Truth.find([b.path for b in entry.bags])) is not None}
     cfg = ds.config
     if truths and S:
@@ -89,8 +93,9 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
             errors.add(ds, cfg, truth, _spread(np.nonzero(drive == d)[0], per_drive))
         rep.truth = errors.table()
         rep.truth["drives_with_truth"] = [ds.info.drives[d].name for d in truths]
-    if truths:
-        rep.truth["rejections"] = rejection_truth(ds, cfg, truths)
+    placed_drives = {d: t for d, t in truths.items() if ds.info.drives[d].crs}  # a drive without a DEM has no placements to judge
+    if placed_drives:
+        rep.truth["rejections"] = rejection_truth(ds, cfg, placed_drives)
     rep.figures = figures(ds, rep, out_dir, fit, rfit, rej_reason, overwrite) + [signal_figure(ds, cfg.dem, out_dir, overwrite)]
     write_json(out_dir / REPORT_JSON, {"card": rep.card, "truth": rep.truth}, overwrite, indent=2, default=float)
     return rep
@@ -114,7 +119,7 @@ def _scan_input(ds: DatasetStore) -> dict[str, float]:
 
 
 def _image_bytes(ds: DatasetStore) -> float:
-    """Return the mean bytes of a sample's four stored JPEG files."""
-    if not ds.n_samples:
+    """Return the mean bytes of a sample's stored JPEG files (of all its cameras)."""
+    if not ds.n_samples or not ds.cameras:
         return 0.0
     return round(float(ds.jpeg_bytes().sum(axis=1).mean()), 1)

@@ -18,6 +18,7 @@ from gtgen.config import RANGES, GtgenConfig, stored_config
 from gtgen.runtime.progress import track
 from gtgen.storage.chunks import Encoded, RowAppender, encode_row
 from gtgen.storage.schema import (
+    CAMERA_ARRAYS,
     COORDS,
     DATASET,
     POINTS_PER_CHUNK,
@@ -50,7 +51,7 @@ def _leaf(group: str, name: str) -> str:
 
 
 def jpeg_files(rows: NDArray[np.uint8], nbytes: NDArray) -> list[bytes]:
-    """Return the JPEG files of one sample's padded rows (4, B) and lengths (4,)."""
+    """Return the JPEG files of one sample's padded rows (C, B) and lengths (C,)."""
     return [rows[c, : int(n)].tobytes() for c, n in enumerate(nbytes)]
 
 
@@ -83,21 +84,30 @@ class DatasetStore(Store):
         return self.shape(_grid_path("labels", rng, "region"))[1]
 
     @property
+    def cameras(self) -> list[str]:
+        """The cameras' names, in the order of the image axis (none: the drives had no camera)."""
+        return list(self.info.cameras)
+
+    @property
     def jpeg_capacity(self) -> int:
-        """Bytes of the zero-padded row holding each stored JPEG file (B)."""
-        return self.shape("inputs/jpeg")[2]
+        """Bytes of the zero-padded row holding each stored JPEG file (B; 0 without cameras)."""
+        return self.shape("inputs/jpeg")[2] if self.cameras else 0
 
     def jpeg_bytes(self) -> NDArray[np.int64]:
-        """Return the length of every stored JPEG file (S, 4) [bytes]."""
-        return self.read("inputs/jpeg_nbytes").astype(np.int64) if self.n_samples else np.zeros((0, 4), np.int64)
+        """Return the length of every stored JPEG file (S, C) [bytes]."""
+        if not self.n_samples or not self.cameras:
+            return np.zeros((self.n_samples if self.cameras else 0, len(self.cameras)), np.int64)
+        return self.read("inputs/jpeg_nbytes").astype(np.int64)
 
     def jpeg_files(self, k: int) -> list[bytes]:
-        """Return sample ``k``'s four JPEG files (front, left, right, back) as stored."""
+        """Return sample ``k``'s JPEG files as stored, one per camera (``cameras``' order)."""
+        if not self.cameras:
+            return []
         return jpeg_files(self.inputs("jpeg")[k], self.inputs("jpeg_nbytes")[k])
 
     def images(self, k: int) -> list[NDArray[np.uint8]]:
-        """Return sample ``k``'s four images decoded (H, W, 3) RGB, at the size of their
-        JPEG (the size ``inputs/K`` is for)."""
+        """Return sample ``k``'s images decoded (H, W, 3) RGB, one per camera, at the size of
+        their JPEG (the size ``inputs/K`` is for)."""
         from gtgen.bag.decode.image import decode_file
 
         return [decode_file(f) for f in self.jpeg_files(k)]
@@ -218,17 +228,17 @@ class ShardWriter(StoreWriter):
 
     fmt = DATASET
 
-    def __init__(self, path: Path, max_samples: int, micro: int, short: int, jpeg_capacity: int,
+    def __init__(self, path: Path, max_samples: int, micro: int, short: int, cameras: int, jpeg_capacity: int,
                  scans: tuple[int, int] | None = None) -> None:
         super().__init__(path)
         _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
-        dims = {"n_m": micro, "n_s": short, "B": jpeg_capacity}
+        dims = {"n_m": micro, "n_s": short, "C": cameras, "B": jpeg_capacity}
         self.jpeg_capacity = jpeg_capacity
         if scans is not None:
             dims.update({"P_s": scans[0], "N_s": scans[1]})
         self.arrays: dict[str, Any] = {}
         K = SAMPLES_PER_SHARD
-        for s in SAMPLE_ARRAYS + (SCAN_ARRAYS if scans is not None else ()):
+        for s in SAMPLE_ARRAYS + (CAMERA_ARRAYS if cameras else ()) + (SCAN_ARRAYS if scans is not None else ()):
             inner = row_shape(s, dims)
             self.arrays[s.path] = self.create(s.path, (max(max_samples, 1), *inner), chunks=(1, *inner), shards=(K, *inner))
         self._scan_dims = scans
@@ -392,7 +402,7 @@ def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
         _LAYOUT.clear()
         root = zarr.open_group(path, mode="r")
         layout = {}
-        for s in SAMPLE_ARRAYS + tuple(sp for sp in SCAN_ARRAYS if sp.path in root):
+        for s in SAMPLE_ARRAYS + tuple(sp for sp in CAMERA_ARRAYS + SCAN_ARRAYS if sp.path in root):
             arr = root[s.path]
             meta = sample_layout(arr)
             ok = meta is not None and samples_per_shard(meta) == SAMPLES_PER_SHARD and chunks_like_gtgen(meta, arr.dtype)

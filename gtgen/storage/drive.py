@@ -48,9 +48,9 @@ class Fixes:
 @dataclass(frozen=True)
 class DriveSamples:
     """The drive's samples: time [ns], base pose in odom at t, travel since the start [m],
-    the X-Racer map at t per range (index into ``DriveStore.maps``), image stamps (S, 4)
-    [ns], the voxel map used (stamp, index), camera extrinsics at each image's stamp
-    (S, 4, 4, 4: base_link <- camera optical)."""
+    the X-Racer map at t per range (index into ``DriveStore.maps``), image stamps (S, C)
+    [ns] of the C cameras, the voxel map used (stamp, index), camera extrinsics at each
+    image's stamp (S, C, 4, 4: base_link <- camera optical)."""
 
     t_ns: NDArray[np.int64]
     pos_odom_m: NDArray[np.float64]
@@ -166,7 +166,7 @@ class DriveStore(Store):
 
     def jpeg(self, ks: NDArray) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
         """Return the stored JPEG files of samples ``ks`` (sorted): their zero-padded rows
-        (len(ks), 4, B) and lengths (len(ks), 4) [bytes]."""
+        (len(ks), C, B) and lengths (len(ks), C) [bytes], C cameras."""
         return self.read("samples/jpeg", ks), self.read("samples/jpeg_nbytes", ks)
 
     @property
@@ -175,11 +175,11 @@ class DriveStore(Store):
         return self.shape("samples/jpeg")[2]
 
     def K(self) -> NDArray[np.float64]:
-        """Return the intrinsics of the four cameras' stored (rectified) images (4, 3, 3) [px]."""
+        """Return the intrinsics of the cameras' stored (rectified) images (C, 3, 3) [px]."""
         return self.read("calib/K")
 
     def image_sizes(self) -> NDArray[np.int64]:
-        """Return the (width, height) of each camera's stored images (4, 2) [px]."""
+        """Return the (width, height) of each camera's stored images (C, 2) [px]."""
         return self.read("calib/image_size")
 
     def voxel_counts(self) -> NDArray[np.int64]:
@@ -244,14 +244,14 @@ class DriveWriter(StoreWriter):
         self.write("calib/K", K)
         self.write("calib/image_size", image_size)
 
-    def create_large(self, S: int, jpeg_capacity: int, maps: dict[str, tuple[int, tuple[int, int], float, str]],
+    def create_large(self, S: int, C: int, jpeg_capacity: int, maps: dict[str, tuple[int, tuple[int, int], float, str]],
                      V: int, P: int, L: int = 0, Q: int = 1) -> None:
-        """Create the image, map, voxel and raw scan arrays: ``jpeg_capacity`` is the row of
-        bytes one stored JPEG gets, ``maps`` gives per range (kept maps, grid shape, cell
-        size [m], frame); L scans of Q points. One chunk per image, map layer, voxel map
-        and scan."""
+        """Create the image, map, voxel and raw scan arrays: S samples' images of C cameras,
+        ``jpeg_capacity`` the row of bytes one stored JPEG gets; ``maps`` gives per range
+        (kept maps, grid shape, cell size [m], frame); L scans of Q points. One chunk per
+        image, map layer, voxel map and scan."""
         B = jpeg_capacity
-        self.create("samples/jpeg", (S, 4, B), chunks=(1, 1, B), flat=True)
+        self.create("samples/jpeg", (S, C, B), chunks=(1, 1, B), flat=True)
         for r, (n, shape, res, frame) in maps.items():
             for name in MAP_LAYERS:
                 self.create(f"maps/{r}/{name}", (n, *shape), chunks=(1, *shape), flat=True)

@@ -4,7 +4,8 @@ A store is a Zarr v3 group whose attributes say its ``store`` kind, its version 
 ``complete`` (true only once written whole). Its arrays are lists of :class:`ArraySpec`
 (name, dtype, shape symbols, units, frame, fill, meaning); ``data_schema.md`` mirrors
 these lists and ``tests/test_schema_doc.py`` checks that they agree. Shape symbols: N
-poses, G fixes, M_r kept maps of range r, C candidates, S samples, V voxel maps, R
+poses, G fixes, M_r kept maps of range r, Q_c candidates, C cameras (topics.cameras, 0 to
+8; the store's ``cameras`` attribute names them in this order), S samples, V voxel maps, R
 rejected samples, n_m / n_s micro / short cells per side, B the bytes a stored JPEG may
 take (3 x extract.image_width x image_height), P voxel points, L kept raw scans, Q =
 extract.max_scan_points, P_s = shards.max_scan_points, N_s = shards.max_scans. The target frame of a sample is vehicle-centric and gravity-aligned at
@@ -68,25 +69,25 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("gnss/var_enu_m2", "float64", "(G, 3)", "m^2", "ENU", "-", "diagonal of position_covariance (NaN if unknown)"),
     ArraySpec("gnss/status", "int8", "(G,)", "-", "-", "-", "NavSatStatus.status (-1 no fix)"),
     *_MAPS,
-    ArraySpec("candidates/t_ns", "int64", "(C,)", "ns", "-", "-", "candidate sample times (every stride_m of travel)"),
-    ArraySpec("candidates/reason", "uint8", "(C,)", "code", "-", "-", "0 = kept, else the rejection reason (gtgen.codes)"),
-    ArraySpec("samples/t_ns", "int64", "(S,)", "ns", "-", "-", "sample time (front camera stamp)"),
+    ArraySpec("candidates/t_ns", "int64", "(Q_c,)", "ns", "-", "-", "candidate sample times (every stride_m of travel)"),
+    ArraySpec("candidates/reason", "uint8", "(Q_c,)", "code", "-", "-", "0 = kept, else the rejection reason (gtgen.codes)"),
+    ArraySpec("samples/t_ns", "int64", "(S,)", "ns", "-", "-", "sample time (a stamp of the reference sensor: extract.reference)"),
     ArraySpec("samples/pos_odom_m", "float64", "(S, 3)", "m", "odom", "-", "base position at t (interpolated)"),
     ArraySpec("samples/quat_odom_xyzw", "float64", "(S, 4)", "-", "odom", "-", "base orientation at t (SLERP)"),
     ArraySpec("samples/distance_m", "float64", "(S,)", "m", "-", "-", "odometry travel since the drive start"),
     ArraySpec("samples/map_index_micro", "int64", "(S,)", "-", "-", "-", "index into maps/micro of the X-Racer map at t"),
     ArraySpec("samples/map_index_short", "int64", "(S,)", "-", "-", "-", "index into maps/short of the X-Racer map at t"),
-    ArraySpec("samples/jpeg", "uint8", "(S, 4, B)", "JPEG file", "camera (rectified)", "0", "front, left, right, back: the JPEG file in bytes [0, jpeg_nbytes), zeros after; the camera's own when not resized or rectified (see Images)"),
-    ArraySpec("samples/jpeg_nbytes", "int64", "(S, 4)", "bytes", "-", "-", "length of each stored JPEG file"),
-    ArraySpec("samples/image_t_ns", "int64", "(S, 4)", "ns", "-", "-", "stamp of each image"),
+    ArraySpec("samples/jpeg", "uint8", "(S, C, B)", "JPEG file", "camera (rectified)", "0", "each camera's JPEG file in bytes [0, jpeg_nbytes), zeros after; the camera's own when not resized or rectified (see Images)"),
+    ArraySpec("samples/jpeg_nbytes", "int64", "(S, C)", "bytes", "-", "-", "length of each stored JPEG file"),
+    ArraySpec("samples/image_t_ns", "int64", "(S, C)", "ns", "-", "-", "stamp of each image"),
     ArraySpec("samples/voxel_t_ns", "int64", "(S,)", "ns", "-", "-", "stamp of the voxel map used"),
     ArraySpec("samples/voxel_index", "int64", "(S,)", "-", "-", "-", "index into voxel_maps of the voxel map used"),
     ArraySpec("voxel_maps/t_ns", "int64", "(V,)", "ns", "-", "-", "stamps of the voxel maps some sample uses"),
     ArraySpec("voxel_maps/n_points", "int64", "(V,)", "-", "-", "-", "points of each voxel map (at most shards.max_voxel_points)"),
     ArraySpec("voxel_maps/points_odom_m", "float32", "(V, P, 3)", "m", "odom", "NaN", "points of map v in rows [0, n_points[v]); P = shards.max_voxel_points, the nearest kept"),
-    ArraySpec("samples/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics at each image's stamp (TF)"),
-    ArraySpec("calib/K", "float64", "(4, 3, 3)", "px", "camera (rectified)", "-", "intrinsics of the stored (rectified) images: CameraInfo's K rescaled to calib/image_size"),
-    ArraySpec("calib/image_size", "int64", "(4, 2)", "px", "-", "-", "width, height of each camera's stored images"),
+    ArraySpec("samples/T_base_cam", "float64", "(S, C, 4, 4)", "m", "base_link <- camera optical", "-", "camera extrinsics at each image's stamp (TF)"),
+    ArraySpec("calib/K", "float64", "(C, 3, 3)", "px", "camera (rectified)", "-", "intrinsics of the stored (rectified) images: CameraInfo's K rescaled to calib/image_size"),
+    ArraySpec("calib/image_size", "int64", "(C, 2)", "px", "-", "-", "width, height of each camera's stored images"),
     ArraySpec("scans/t_ns", "int64", "(L,)", "ns", "-", "-", "header stamp of each kept raw scan (lidar role; sorted by lidar, then stamp)"),
     ArraySpec("scans/lidar", "uint8", "(L,)", "-", "-", "-", "the scan's lidar: index into topics.lidar of the stored config"),
     ArraySpec("scans/n_points", "int64", "(L,)", "-", "-", "-", "points of each scan (at most extract.max_scan_points, the nearest kept)"),
@@ -95,8 +96,8 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("scans/points_cm", "int16", "(L, Q, 3)", "cm", "sensor at the stamp", "-32768", "points of scan l in rows [0, n_points[l]), motion-corrected to the stamp if the cloud has per-point times; one chunk per scan"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 6, tuple(_DRIVE), "gtgen extract BAG",
-                    "re-run 'gtgen extract BAG --overwrite' (version 6 stores the images as JPEG files and the raw lidar scans)",
+DRIVE = StoreFormat("gtgen-drive", 7, tuple(_DRIVE), "gtgen extract BAG",
+                    "re-run 'gtgen extract BAG --overwrite' (version 7 stores the images of any camera rig: its 'cameras' attribute names them)",
                     ("grids", "topics", "extract", "mapping"))
 
 
@@ -142,10 +143,10 @@ for _r in RANGES:
         ArraySpec(f"dem/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "aligned DEM, bilinear"),
     ]
 _DATASET += [
-    ArraySpec("inputs/jpeg", "uint8", "(S, 4, B)", "JPEG file", "camera (rectified)", "0", "front, left, right, back: the JPEG file in bytes [0, jpeg_nbytes), zeros after (see Images)"),
-    ArraySpec("inputs/jpeg_nbytes", "int32", "(S, 4)", "bytes", "-", "0", "length of each stored JPEG file"),
-    ArraySpec("inputs/K", "float64", "(S, 4, 3, 3)", "px", "camera (rectified)", "0", "intrinsics of the stored (rectified) image, at the size its JPEG header gives"),
-    ArraySpec("inputs/T_base_cam", "float64", "(S, 4, 4, 4)", "m", "base <- camera optical", "0", "camera extrinsics"),
+    ArraySpec("inputs/jpeg", "uint8", "(S, C, B)", "JPEG file", "camera (rectified)", "0", "only with cameras: each camera's JPEG file in bytes [0, jpeg_nbytes), zeros after (see Images), in the order of the attribute 'cameras'"),
+    ArraySpec("inputs/jpeg_nbytes", "int32", "(S, C)", "bytes", "-", "0", "only with cameras: length of each stored JPEG file"),
+    ArraySpec("inputs/K", "float64", "(S, C, 3, 3)", "px", "camera (rectified)", "0", "only with cameras: intrinsics of the stored (rectified) image, at the size its JPEG header gives"),
+    ArraySpec("inputs/T_base_cam", "float64", "(S, C, 4, 4)", "m", "base <- camera optical", "0", "only with cameras: camera extrinsics"),
     ArraySpec("inputs/T_target_base", "float64", "(S, 4, 4)", "m", "target <- base", "0", "the base's roll and pitch in the target frame"),
     ArraySpec("inputs/raw_elevation_m", "float32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell"),
     ArraySpec("inputs/voxel_offsets", "int64", "(S + 1,)", "-", "-", "0", "sample s owns voxel_points_m[offsets[s]:offsets[s+1]]"),
@@ -189,14 +190,16 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 7, tuple(_DATASET + COORDS), "gtgen dem-align",
+DATASET = StoreFormat("gtgen-dataset", 8, tuple(_DATASET + COORDS), "gtgen dem-align",
                       "rebuild it from its bags with 'gtgen build DRIVES... -o OUT --overwrite' (or gtgen extract, fuse and "
-                      "dem-align, each with --overwrite): version 7 records each DEM tile's judgement by its borders")
+                      "dem-align, each with --overwrite): version 8 stores the images of any camera rig and datasets without a DEM")
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
-# are there only when the drives have raw scans
+# are there only when the drives have raw scans, the images' only when they have cameras
 SCAN_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if s.path.startswith("inputs/scan_"))
-SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_", "inputs/scan_")))
+CAMERA_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if "C" in s.axes())
+SAMPLE_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if not s.path.startswith(("rejected/", "inputs/voxel_", "inputs/scan_"))
+                                             and s not in CAMERA_ARRAYS)
 
 FORMATS = {f.kind: f for f in (DRIVE, FUSED, DATASET)}
 

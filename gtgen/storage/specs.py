@@ -61,7 +61,7 @@ def dimension_names(spec: ArraySpec) -> list[str]:
     leaf = spec.path.rsplit("/", 1)[-1]
     if leaf in ("x_m", "y_m", "sample"):  # a dimension coordinate: named as its dimension
         return [leaf]
-    named = {"S": "sample", "R": "rejected", "P": "point", "H": "row", "W": "col", "S + 1": "sample_edge"}
+    named = {"S": "sample", "R": "rejected", "P": "point", "H": "row", "W": "col", "S + 1": "sample_edge", "C": "camera"}
     out: list[str] = []
     grid_axes = iter(("x_m", "y_m"))
     for i, sym in enumerate(spec.axes()):

@@ -80,6 +80,30 @@ def decode_at(jpeg: bytes, width: int, height: int) -> tuple[NDArray[np.uint8], 
         raise TrainError(f"a stored JPEG of {len(jpeg)} bytes does not decode ({err}); rebuild the dataset") from err
 
 
+def for_dataset(tc: TrainConfig, cameras: list[str], where: str) -> TrainConfig:
+    """Return ``tc`` with the camera input off when the dataset at ``where`` holds no
+    camera (``cameras`` empty), saying so in one log line; raise TrainError when the
+    cameras are the model's only input."""
+    if cameras or not tc.cameras:
+        return tc
+    if not (tc.points or tc.raw_elevation):
+        raise TrainError(f"dataset '{where}' holds no camera images, and the cameras are the model's only input "
+                         "(train.points and raw_elevation are off); turn one of them on")
+    import logging
+
+    logging.getLogger(__name__).warning("dataset '%s' holds no camera images: the camera input is off (train.cameras: false)", where)
+    return tc.model_copy(update={"cameras": False})
+
+
+def camera_mismatch(trained: list[str], dataset: list[str], ckpt: Path, where: Path) -> TrainError | None:
+    """Return the error for a checkpoint whose image branch was trained on the cameras
+    ``trained`` evaluated on a dataset of the cameras ``dataset`` (None when they are the same)."""
+    if trained == dataset:
+        return None
+    return TrainError(f"checkpoint '{ckpt}' was trained on the cameras {trained}; dataset '{where}' has {dataset}: evaluate it on a "
+                      "dataset of the same camera rig (or train on this one)")
+
+
 # why a dataset cannot give the N-scan input, and how to get it
 NO_SCANS = ("holds no raw lidar scans, which train.geometry: scans reads (Tab. III's N-scan input); map the bags' PointCloud2 "
             "scans to the lidar role (topics.lidar) and rebuild it with gtgen extract, fuse and dem-align")
@@ -100,11 +124,12 @@ class ShardDataset(Dataset):
     key                          shape, dtype            meaning
     ===========================  ======================  ==========================================
     index                        (), int64               dataset sample index
-    images                       (4, 3, H, W), uint8     front, left, right, back; RGB bytes decoded from
-                                                         the stored JPEG at the model's size (the
-                                                         model normalises them: ``model.normalize_images``)
-    K                            (4, 3, 3), float32      intrinsics at the model's image size [px]
-    T_target_cam                 (4, 4, 4), float32      target <- camera optical [m]
+    images                       (C, 3, H, W), uint8     the C cameras' (the dataset's attribute cameras)
+                                                         RGB bytes decoded from the stored JPEG at
+                                                         the model's size (the model normalises
+                                                         them: ``model.normalize_images``)
+    K                            (C, 3, 3), float32      intrinsics at the model's image size [px]
+    T_target_cam                 (C, 4, 4), float32      target <- camera optical [m]
     points, n_points             (P, 3) float32, ()      voxel points (train.geometry: scans, the
                                                          last n_scans scans) in the target frame
                                                          [m], the first n_points valid (P =
@@ -136,6 +161,8 @@ class ShardDataset(Dataset):
         self.scans = tc.points and tc.geometry == "scans"
         if self.scans and not store.has_scans:
             raise TrainError(f"dataset '{path}' {NO_SCANS}")
+        if tc.cameras and not store.cameras:
+            raise TrainError(f"dataset '{path}' holds no camera images; train with train.cameras: false")
         if self.scans and tc.n_scans > store.scan_dims[1]:
             raise TrainError(f"train.n_scans = {tc.n_scans}, but dataset '{path}' stores the last {store.scan_dims[1]} scans "
                              "(shards.max_scans); expected at most that, or rebuild it with a larger shards.max_scans")
@@ -189,7 +216,7 @@ class ShardDataset(Dataset):
         worker (per-sample arrays one shard-file read each, the flat points by range)."""
         if self._r is None:
             st = self.store
-            self._r = {n: st.inputs(n) for n in ("jpeg", "jpeg_nbytes", "K", "T_target_base", "T_base_cam", "raw_elevation_m")}
+            self._r = {n: st.inputs(n) for n in ("T_target_base", "raw_elevation_m") + (("jpeg", "jpeg_nbytes", "K", "T_base_cam") if self.tc.cameras else ())}
             self._r["points"] = st.voxel_points()
             if self.scans:
                 self._r["scan_points"], self._r["scan_counts"] = st.scan_input()

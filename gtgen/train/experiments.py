@@ -59,9 +59,17 @@ class Run:
         return RANGES if r == "both" else (r,)
 
 
-def _runs(scans: bool) -> dict[str, Run]:
+def _runs(scans: bool, cameras: bool = True) -> dict[str, Run]:
     """Return every run of the tables by name; the lidar input "L" is the raw scans when the
-    dataset has them (``scans``), else the voxel map."""
+    dataset has them (``scans``), else the voxel map; without ``cameras`` (a dataset without
+    images) every run that has other inputs trains without the camera one."""
+    out = _all_runs(scans)
+    if cameras:
+        return out
+    return {name: r if _cameras_only(r) else Run({**r.train, "cameras": False}, r.scans) for name, r in out.items()}
+
+
+def _all_runs(scans: bool) -> dict[str, Run]:
     lidar = {"geometry": "scans", "n_scans": L_SCANS} if scans else {}
     out = {"ours": Run({})}
     for r in RANGES:
@@ -148,8 +156,11 @@ _TAB4 = {"UL": (0.229, 0.333, 0.853, 0.298, 0.655, 1.849, 0.18), "CL": (0.216, 0
          "UL + CL": (0.215, 0.319, 0.870, 0.289, 0.650, 1.874, 0.09)}
 
 
-def _tables(lidar: str) -> list[Table]:
-    """Return the paper's tables; ``lidar`` names the "L" input of this dataset."""
+def _tables(lidar: str, cameras: bool = True) -> list[Table]:
+    """Return the paper's tables; ``lidar`` names the "L" input of this dataset, and without
+    ``cameras`` the rows' inputs go without "C" (the runs' camera input is off)."""
+    if not cameras:
+        return [_without_cameras(t) for t in _tables(lidar)]
     out = []
     for r in RANGES:
         p = _TAB1[r]
@@ -187,6 +198,13 @@ def _tables(lidar: str) -> list[Table]:
     return out
 
 
+def _without_cameras(t: Table) -> Table:
+    """Return table ``t`` with its trained rows' inputs named without the cameras ("C + ")."""
+    lines = tuple(ln if ln.method != "model" else Line(ln.label, ln.inputs.removeprefix("C + "), ln.runs, ln.paper, ln.method,
+                                                       ln.paper_coverage) for ln in t.lines)
+    return Table(t.number, t.title, t.metrics, lines)
+
+
 def parse_tables(text: str) -> tuple[str, ...]:
     """Return the table numbers of ``--tables`` ('I,III,IV'), in the paper's order."""
     asked = [t.strip().upper() for t in text.split(",") if t.strip()]
@@ -220,6 +238,7 @@ class _Plan:
     runs: dict[str, Run]
     skipped: list[str]
     needed: list[str]
+    no_cameras: list[str] = field(default_factory=list)  # lines skipped for want of camera images
 
 
 def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int = 1, steps: int | None = None,
@@ -239,9 +258,12 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
     n_steps = steps or (user.get("train") or {}).get("steps") or DEFAULT_STEPS.get(preset, PRESETS[preset].train["steps"])
     store = DatasetStore(dataset)
     split, notes = _eval_split(store)
-    plan = _plan(store.has_scans, tables)
+    plan = _plan(store.has_scans, tables, bool(store.cameras))
     if plan.skipped:
         notes.append(f"skipped {', '.join(plan.skipped)}: the dataset {NO_SCANS}")
+    if plan.no_cameras:
+        notes.append(f"skipped {', '.join(plan.no_cameras)}: the dataset holds no camera images (the other rows train without "
+                     "their camera input)")
     res = ExperimentsResult(out, out / "experiments.json", out / "experiments.md", split, notes, [])
     if out.exists() and not out.is_dir():
         raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
@@ -259,14 +281,22 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
     return res
 
 
-def _plan(scans: bool, numbers: tuple[str, ...]) -> _Plan:
-    """Return the plan of tables ``numbers`` on a dataset with raw scans or without."""
-    runs = _runs(scans)
-    tables = [t for t in _tables("L (raw scans)" if scans else "L (VM: no raw scans)") if t.number in numbers]
+def _plan(scans: bool, numbers: tuple[str, ...], cameras: bool = True) -> _Plan:
+    """Return the plan of tables ``numbers`` on a dataset with raw scans or without, with
+    camera images or without (the rows whose only input is the cameras are skipped)."""
+    runs = _runs(scans, cameras)
+    tables = [t for t in _tables("L (raw scans)" if scans else "L (VM: no raw scans)", cameras) if t.number in numbers]
     lines = [ln for t in tables for ln in t.lines]
     skipped = [] if scans else list(dict.fromkeys(ln.label for ln in lines if any(runs[r].scans for r in ln.runs)))
-    needed = list(dict.fromkeys(r for ln in lines if ln.label not in skipped for r in ln.runs))
-    return _Plan(tables, runs, skipped, needed)
+    blind = [] if cameras else list(dict.fromkeys(ln.label for ln in lines if ln.label not in skipped and any(_cameras_only(runs[r]) for r in ln.runs)))
+    needed = list(dict.fromkeys(r for ln in lines if ln.label not in skipped + blind for r in ln.runs))
+    return _Plan(tables, runs, skipped, needed, blind)
+
+
+def _cameras_only(run: Run) -> bool:
+    """Whether the run's only input is the cameras."""
+    t = run.train
+    return t.get("cameras", True) and not t.get("points", True) and not t.get("raw_elevation", True)
 
 
 def _folder(out: Path, run: str, seed: int) -> Path:
@@ -374,7 +404,7 @@ def _fill(table: Table, reduced: dict[str, dict], plan: _Plan, seeds: int) -> di
     and coverage of the labelled cells [%], and the paper's."""
     rows = []
     for ln in table.lines:
-        if ln.label in plan.skipped:
+        if ln.label in plan.skipped or ln.label in plan.no_cameras:
             continue
         cells = []
         for j, m in enumerate(table.metrics):

@@ -11,11 +11,11 @@ image size, n the number of picked points):
 ========================  ====================  ==============================================
 input                     shape, dtype          meaning
 ========================  ====================  ==============================================
-images                    (B, 4, 3, H, W) uint8  RGB bytes of the cameras front, left, right,
-                                                back (the graph normalises them: ImageNet mean
-                                                and std)
-K                         (B, 4, 3, 3) float32   intrinsics at H x W [px]
-T_target_cam              (B, 4, 4, 4) float32   target <- camera optical frame [m]
+images                    (B, C, 3, H, W) uint8  RGB bytes of the C cameras the model was trained
+                                                on, in their order (``OnnxResult.cameras``; the
+                                                graph normalises them: ImageNet mean and std)
+K                         (B, C, 3, 3) float32   intrinsics at H x W [px]
+T_target_cam              (B, C, 4, 4) float32   target <- camera optical frame [m]
 pillar_points             (n, 3) float32         picked voxel points, target frame [m]
 pillar_cells              (n,) int64             their cells: b * S^2 + ix * S + iy
 raw                       (B, 2, S, S) float32   min z / elevation_clip_m (0 where none), validity
@@ -41,6 +41,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from gtgen.config import CAMERAS
 from gtgen.runtime.output import atomic_output, signature
 
 INPUTS = ("images", "K", "T_target_cam", "pillar_points", "pillar_cells", "raw", "prior", "prior_micro")
@@ -97,17 +98,18 @@ class OnnxResult:
     outputs: tuple[str, ...]
     preset: str
     step: int
+    cameras: list[str]  # the order of the images input's cameras
 
 
-def example_inputs(tc, bev_size: int, n_points: int = 1000) -> tuple[torch.Tensor, ...]:
-    """Return graph inputs (``graph_inputs``) of the right shapes and types for ``tc`` and a
-    BEV grid of ``bev_size`` cells (batch 1; the values do not matter to the graph: it has no
-    branch on data)."""
-    H, W, S, M = tc.image_height, tc.image_width, bev_size, tc.micro_size
-    K = torch.tensor([[W / 2, 0.0, W / 2 - 0.5], [0.0, W / 2, H / 2 - 0.5], [0.0, 0.0, 1.0]]).expand(1, 4, 3, 3)
+def example_inputs(tc, bev_size: int, n_points: int = 1000, cameras: int = 4) -> tuple[torch.Tensor, ...]:
+    """Return graph inputs (``graph_inputs``) of the right shapes and types for ``tc``, a BEV
+    grid of ``bev_size`` cells and ``cameras`` cameras (batch 1; the values do not matter to
+    the graph: it has no branch on data)."""
+    H, W, S, M, C = tc.image_height, tc.image_width, bev_size, tc.micro_size, cameras
+    K = torch.tensor([[W / 2, 0.0, W / 2 - 0.5], [0.0, W / 2, H / 2 - 0.5], [0.0, 0.0, 1.0]]).expand(1, C, 3, 3)
     g = torch.Generator().manual_seed(0)
-    every = {"images": torch.randint(0, 256, (1, 4, 3, H, W), dtype=torch.uint8, generator=g), "K": K.contiguous(),
-             "T_target_cam": torch.eye(4).expand(1, 4, 4, 4).contiguous(), "pillar_points": torch.randn(n_points, 3, generator=g),
+    every = {"images": torch.randint(0, 256, (1, C, 3, H, W), dtype=torch.uint8, generator=g), "K": K.contiguous(),
+             "T_target_cam": torch.eye(4).expand(1, C, 4, 4).contiguous(), "pillar_points": torch.randn(n_points, 3, generator=g),
              "pillar_cells": torch.randint(0, S * S, (n_points,), generator=g), "raw": torch.zeros(1, 2, S, S),
              "prior": torch.zeros(1, 2, S, S), "prior_micro": torch.zeros(1, 2, M, M)}
     return tuple(every[n] for n in graph_inputs(tc))
@@ -124,7 +126,8 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
 
     state, tc, data_cfg = load_checkpoint(ckpt)
     model = _trained_model(state, tc, data_cfg).requires_grad_(False)
-    args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1])
+    cameras = list(state.get("cameras", CAMERAS)) if tc.cameras else []
+    args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1], cameras=len(cameras))
     net = Deployable(model).eval()
     with atomic_output(out, overwrite) as tmp, torch.no_grad(), warnings.catch_warnings():
         # the tracer warns of every Python branch on a shape: the graph is for these shapes
@@ -137,4 +140,4 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
         m = onnx.load(str(tmp))
         m.producer_name, m.doc_string = "gtgen", signature()
         onnx.save(m, str(tmp))
-    return OnnxResult(out, net.inputs, net.outputs, state["preset"], state["step"])
+    return OnnxResult(out, net.inputs, net.outputs, state["preset"], state["step"], cameras)

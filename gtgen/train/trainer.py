@@ -21,15 +21,16 @@ import torch
 from torch.utils.data import DataLoader
 
 from gtgen import codes
-from gtgen.config import GtgenConfig, TrainConfig, save_config
+from gtgen.config import CAMERAS, GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from gtgen.grids import nearest_filled
 from gtgen.runtime.output import check_replace, lock, output_folder, owned, remove, write_json
 from gtgen.runtime.progress import track
+from gtgen.storage.dataset import DatasetStore
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
 from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
-from gtgen.train.data import ShardDataset
+from gtgen.train.data import ShardDataset, camera_mismatch, for_dataset
 from gtgen.train.loss import total_loss
 from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
 from gtgen.train.model import MMLite, bev_grid
@@ -155,6 +156,7 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
     work, unless ``overwrite``."""
     _check_steps(max_steps)
     tc = cfg.train if device is None else cfg.train.model_copy(update={"device": device})
+    tc = for_dataset(tc, DatasetStore(dataset).cameras, str(dataset))
     cfg = cfg.model_copy(update={"train": tc})
     procs = D.torchrun_env()
     dev = D.resolve_device(tc.device, procs)
@@ -356,7 +358,7 @@ def _mean_parts(parts: dict[str, float], procs: D.Processes, dev: torch.device) 
 
 def _payload(model: MMLite, opt, sched, scaler, step: int, history: list, best: dict, cfg: GtgenConfig, ds: ShardDataset) -> dict:
     tc = cfg.train
-    return {"preset": tc.preset, "train": tc.model_dump(mode="json"), "data_config": ds.data_cfg.model_dump(mode="json"),
+    return {"preset": tc.preset, "train": tc.model_dump(mode="json"), "data_config": ds.data_cfg.model_dump(mode="json"), "cameras": ds.store.cameras,
             "model": model.state_dict(), "optim": opt.state_dict(), "sched": sched.state_dict(), "scaler": scaler.state_dict(),
             "step": step, "history": history, "best": best}
 
@@ -475,7 +477,7 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     state, tc, data_cfg = load_checkpoint(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
-    ds = ShardDataset(dataset, tc, split=split)
+    ds = _eval_dataset(dataset, ckpt, state, tc, split)
     used = split or "all"
     if len(ds) == 0:
         raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.store.n_samples} samples are all in other splits); "
@@ -493,6 +495,16 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
         "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
         "device": str(dev), "seconds_per_sample": secs / len(ds),
     }
+
+
+def _eval_dataset(dataset: Path, ckpt: Path, state: dict, tc: TrainConfig, split: str | None) -> ShardDataset:
+    """Return the samples of ``split`` of ``dataset`` as the checkpoint's model reads them;
+    raise TrainError when its image branch was trained on other cameras than the dataset's."""
+    if tc.cameras:
+        err = camera_mismatch(list(state.get("cameras", CAMERAS)), DatasetStore(dataset).cameras, ckpt, dataset)
+        if err is not None:
+            raise err
+    return ShardDataset(dataset, tc, split=split)
 
 
 def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val", device: str | None = None) -> dict:
@@ -550,7 +562,7 @@ def predict_sample(dataset: Path, ckpt: Path, index: int, device: str | None = N
     state, tc, data_cfg = load_checkpoint(ckpt)
     dev = D.resolve_device(device or "auto")
     model = _trained_model(state, tc, data_cfg).to(dev)
-    ds = ShardDataset(dataset, tc)
+    ds = _eval_dataset(dataset, ckpt, state, tc, None)
     pos = np.nonzero(ds.indices == index)[0]
     if not len(pos):
         raise TrainError(f"sample {index} is not in the dataset (0..{ds.store.n_samples - 1})")
