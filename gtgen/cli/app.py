@@ -185,10 +185,18 @@ def _fail(message: str) -> None:
     sys.exit(1)
 
 
+def _terminated(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
     """Run the CLI: a usage error (a bad option value, a missing argument) prints the usage
     and the error on one line and exits 2; gtgen errors and OS errors (a full disk, a
-    permission) print one line and exit 1."""
+    permission) print one line and exit 1. SIGTERM ends the command as Ctrl-C does, through
+    its clean-up (the temporary outputs go), with exit code 143."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         code = app(prog_name="gtgen", standalone_mode=False)
     except typer.TyperException as err:  # click's usage errors

@@ -62,6 +62,8 @@ def train_cmd(
         ]
         if res.peak_memory_mib is not None:
             rows.append((f"peak GPU memory{tag}", f"{res.peak_memory_mib:.0f} MiB"))
+        if res.latest_note:
+            rows.append((f"latest{tag}", f"not updated: {res.latest_note}"))
     if main:
         table("gtgen train", rows)
 

@@ -237,16 +237,16 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
     user = read_yaml(config) if config is not None else {}
     base = load_config(None, preset_overrides(preset), user)
     n_steps = steps or (user.get("train") or {}).get("steps") or DEFAULT_STEPS.get(preset, PRESETS[preset].train["steps"])
+    if out.exists() and not out.is_dir():
+        raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
+    for path in (out / "experiments.json", out / "experiments.md"):  # before an hour of training, not after
+        check_replace(path)
     store = DatasetStore(dataset)
     split, notes = _eval_split(store)
     plan = _plan(store.has_scans, tables)
     if plan.skipped:
         notes.append(f"skipped {', '.join(plan.skipped)}: the dataset {NO_SCANS}")
     res = ExperimentsResult(out, out / "experiments.json", out / "experiments.md", split, notes, [])
-    if out.exists() and not out.is_dir():
-        raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
-    for path in (res.json_path, res.markdown_path):  # before an hour of training, not after
-        check_replace(path)
     with output_folder(out), lock(out):
         evals = _train_and_evaluate(dataset, out, plan, base, n_steps, seeds, split, device, progress, res)
         res.tables = [_fill(t, {name: mean_and_spread(evs) for name, evs in evals.items()}, plan, seeds) for t in plan.tables]

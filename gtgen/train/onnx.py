@@ -126,7 +126,7 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
     model = _trained_model(state, tc, data_cfg).requires_grad_(False)
     args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1])
     net = Deployable(model).eval()
-    with atomic_output(out, overwrite) as tmp, torch.no_grad(), warnings.catch_warnings():
+    with atomic_output(out, overwrite, file=True) as tmp, torch.no_grad(), warnings.catch_warnings():
         # the tracer warns of every Python branch on a shape: the graph is for these shapes
         warnings.simplefilter("ignore", torch.jit.TracerWarning)
         torch.onnx.export(net, args, str(tmp), dynamo=False, opset_version=OPSET, input_names=list(net.inputs),

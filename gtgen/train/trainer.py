@@ -24,7 +24,7 @@ from gtgen import codes
 from gtgen.config import GtgenConfig, TrainConfig, save_config
 from gtgen.errors import ConfigError, GtgenError, TrainError
 from gtgen.grids import nearest_filled
-from gtgen.runtime.output import check_replace, lock, output_folder, owned, remove, write_json
+from gtgen.runtime.output import check_replace, lock, output_folder, owned, point_link, remove, write_json
 from gtgen.runtime.progress import track
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
@@ -138,6 +138,7 @@ class TrainResult:
     peak_memory_mib: float | None = None
     best: dict | None = None
     parameters: dict[str, int] = field(default_factory=dict)
+    latest_note: str | None = None  # why runs/latest was left as it is (None: it points at this run)
 
 
 def _check_steps(max_steps: int | None) -> None:
@@ -324,7 +325,7 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
             "history": history, "seconds": secs, "device": str(dev), "precision": precision, "processes": procs.world,
             "samples_per_s": res.samples_per_s, "data_wait_share": res.data_wait_share, "peak_memory_mib": peak,
             "best": res.best, "best_metric": BEST_METRIC, "parameters": counts}, overwrite, indent=1)
-        _link_latest(run_dir)
+        res.latest_note = _link_latest(run_dir)
     return res
 
 
@@ -457,13 +458,10 @@ def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.devic
             BEST_METRIC: float(np.mean(totals)) if all(t is not None for t in totals) else float("nan")}
 
 
-def _link_latest(run_dir: Path) -> None:
-    """Point ``runs/latest`` at ``run_dir`` (unless a real folder of that name is there)."""
-    latest = run_dir.parent / "latest"
-    if latest.is_symlink() or not latest.exists():
-        if latest.is_symlink():
-            latest.unlink()
-        latest.symlink_to(run_dir.name)
+def _link_latest(run_dir: Path) -> str | None:
+    """Point ``runs/latest`` at ``run_dir`` unless something of the user's is there (a
+    folder, a file, a symlink to anything but a run folder gtgen wrote); return why not."""
+    return point_link(run_dir.parent / "latest", run_dir, lambda p: owned(p / CONFIG_FILE))
 
 
 def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None,
