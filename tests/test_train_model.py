@@ -184,8 +184,9 @@ def test_onnx_export_matches_torch(dataset, tmp_path):
 
     from gtgen.train.checkpoint import load_checkpoint
     from gtgen.train.data import ShardDataset
+    from gtgen.train.evaluation import trained_model as _trained_model
     from gtgen.train.onnx import INPUTS, Deployable, deploy_inputs
-    from gtgen.train.trainer import _collate, _trained_model, train
+    from gtgen.train.trainer import _collate, train
 
     cfg = load_config(None, SMALL_TRAIN)
     train(dataset, tmp_path / "run", cfg, max_steps=2)

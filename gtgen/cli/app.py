@@ -19,7 +19,7 @@ import typer
 from typer.core import TyperGroup
 
 from gtgen import __version__
-from gtgen.errors import ConfigError, GtgenError
+from gtgen.errors import ConfigError, GtgenError, RankError
 
 
 class Group(TyperGroup):
@@ -203,6 +203,8 @@ def main() -> None:
         _usage_error(err)
     except typer.Abort:
         typer.echo("error: aborted", err=True)
+        sys.exit(1)
+    except RankError:  # under torchrun, rank 0 prints the error its processes share
         sys.exit(1)
     except GtgenError as err:
         _fail(str(err))

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -182,7 +183,7 @@ class Store:
     def __reduce__(self) -> tuple:
         return (_reopen, (type(self), str(self.path)))
 
-    @property
+    @cached_property
     def identity(self) -> str:
         """The store's identity (``integrity.identity``): results computed from it record it."""
         from gtgen.storage.integrity import identity

@@ -119,11 +119,11 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
     minutes, for this graph). The model's ``doc_string`` carries gtgen's signature (a later
     export may replace the file; anything else there only with ``overwrite``)."""
     from gtgen.train.checkpoint import load_checkpoint
+    from gtgen.train.evaluation import trained_model
     from gtgen.train.model import bev_grid
-    from gtgen.train.trainer import _trained_model
 
     state, tc, data_cfg = load_checkpoint(ckpt)
-    model = _trained_model(state, tc, data_cfg).requires_grad_(False)
+    model = trained_model(state, tc, data_cfg).requires_grad_(False)
     args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1])
     net = Deployable(model).eval()
     with atomic_output(out, overwrite, file=True) as tmp, torch.no_grad(), warnings.catch_warnings():
