@@ -305,9 +305,9 @@ def test_results_are_tied_to_their_dataset(dataset, with_val, tmp_path):
         train(with_val, run, cfg, resume=True)
     msg = str(err.value)
     assert f"'{dataset}' (identity {a})" in msg and f"'{with_val}' (identity {b})" in msg and "another --run-dir" in msg
-    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     c = tmp_path / "c.yaml"
     c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     with pytest.raises(TrainError) as err:
         run_experiments(with_val, tmp_path / "exp", steps=2, tables=parse_tables("iv"), config=c)
     msg = str(err.value)
