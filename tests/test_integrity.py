@@ -209,7 +209,7 @@ def test_a_users_note_in_a_store_is_named_not_called_damage(dataset, tmp_path):
     assert v.problems == [] and v.extra == ["NOTES.txt"]
     p = run_cli("verify", ds_path)
     line = _one_line(p)
-    assert p.returncode == 1 and "'NOTES.txt'" in line and "removing them is enough" in line, line
+    assert p.returncode == 1 and "1 file gtgen did not write: 'NOTES.txt'" in line and "removing it is enough" in line, line
     assert "damaged" not in line and "rebuild" not in line.replace("nothing to rebuild", "")
     DatasetStore(ds_path).meta("t_ns")  # readers are not concerned
 

@@ -148,7 +148,8 @@ def verify(
     rows += [("not written by gtgen", f) for f in v.extra[:20]]
     if len(v.extra) > 20:
         rows.append(("", f"... and {len(v.extra) - 20} more"))
-    verdict = f"DAMAGED ({len(v.problems)} problems)" if v.problems else "whole" + (f", with {len(v.extra)} files gtgen did not write" if v.extra else "")
+    files = f"{len(v.extra)} file{'s' if len(v.extra) > 1 else ''}"
+    verdict = f"DAMAGED ({len(v.problems)} problems)" if v.problems else "whole" + (f", with {files} gtgen did not write" if v.extra else "")
     rows.append(("verdict", verdict))
     table("gtgen verify", rows)
     if v.problems:
@@ -156,5 +157,6 @@ def verify(
         raise GtgenError(f"store '{store}' is damaged: {v.problems[0]}{more}; rebuild it with '{fmt.made_by}'")
     if v.extra:
         more = f" (and {len(v.extra) - 1} more)" if len(v.extra) > 1 else ""
-        raise GtgenError(f"store '{store}' holds files gtgen did not write: '{v.extra[0]}'{more}; its data is whole: "
-                         "removing them is enough (nothing to rebuild)")
+        them = "them" if len(v.extra) > 1 else "it"
+        raise GtgenError(f"store '{store}' holds {files} gtgen did not write: '{v.extra[0]}'{more}; its data is whole: "
+                         f"removing {them} is enough (nothing to rebuild)")
