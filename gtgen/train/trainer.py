@@ -178,7 +178,10 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
         D.share_error(procs, err)
         state = load_checkpoint(ckpt_path, tc.preset)[0] if resume else None
         if state is not None:
-            check_resume(state, ds.store, run_dir)
+            try:
+                check_resume(state, ds.store, run_dir)
+            except TrainError as err:  # every process finds the same: rank 0 reports it
+                raise (err if procs.main else RankError(str(err))) from None
         return _fit(ds, val, model, counts, cfg, run_dir, state, max_steps, procs, dev, precision, overwrite)
 
 
