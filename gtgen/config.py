@@ -379,6 +379,7 @@ class TrainConfig(_Model):
     seed: int = Field(0, ge=0, description="random seed")
     device: str = Field("auto", description="torch device: auto (cuda when present, else cpu), cpu, cuda, cuda:N; under torchrun each process takes cuda:LOCAL_RANK")
     precision: Literal["auto", "32", "bf16-mixed", "16-mixed"] = Field("auto", description="float precision: auto (bf16-mixed on a CUDA device that has bf16, 16-mixed on other CUDA devices, 32 on cpu), 32, bf16-mixed, or 16-mixed (with a gradient scaler)")
+    check_memory: bool = Field(True, description="stop before the first step when the preset's estimated memory need at batch_size exceeds what the device has free (gtgen/train/memory.py); false: try anyway")
     sync_batchnorm: bool = Field(True, description="under torchrun on CUDA, batch norms take their statistics over the global batch (SyncBatchNorm); gloo on cpu keeps each process's own")
     cameras: bool = Field(True, description="the cameras' Lift-Splat BEV features are an input (off: no images are loaded)")
     points: bool = Field(True, description="PointPillars features of the point input (train.geometry) are an input (off: no points are loaded)")

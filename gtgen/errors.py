@@ -52,6 +52,11 @@ class TrainError(GtgenError, ValueError):
     """Training or evaluation cannot run on the given data or checkpoint."""
 
 
+class RankError(TrainError):
+    """Under torchrun, the error of rank 0 as another process received it: rank 0 reports
+    it, the others stop without repeating it."""
+
+
 class LockedError(GtgenError, BlockingIOError):
     """Another gtgen command is writing (or reading) the same output."""
 

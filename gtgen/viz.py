@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from gtgen.runtime.output import save_figure
 from gtgen.storage.dataset import DatasetStore
 
 REGION_COLORS = np.array([[0.85, 0.85, 0.85], [0.98, 0.59, 0.15], [0.59, 0.14, 0.57], [0.26, 0.43, 0.69]])
+TITLE_PT = 12  # the title's font size [pt]
 COLORBAR_LABELS = {"terrain": "elevation [m, rel. base z at t]", "magma": "risk [0..1]", "viridis": "confidence [0..1]"}
 
 
@@ -80,10 +82,14 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
                 cb.ax.tick_params(labelsize=7)
     t_ns, drive = ds.meta("t_ns"), ds.meta("drive")
     t, t0 = int(t_ns[index]), int(t_ns[drive == drive[index]].min())
-    fig.suptitle(f"{dataset.name} sample {index}  t = {(t - t0) / 1e9:.2f} s after the drive's first sample ({_utc(t)})  "
-                 f"ICP fitness {ds.meta('icp_fitness')[index]:.3f}  "
-                 "(forward up; regions: orange obs. past/current, purple obs. future, blue unobserved/DEM, grey none)")
-    fig.tight_layout()
+    lines = [f"{dataset.name} sample {index}:  t = {(t - t0) / 1e9:.2f} s after the drive's first sample ({_utc(t)}),  "
+             f"ICP fitness {ds.meta('icp_fitness')[index]:.3f}",
+             "forward up; regions: orange observed past/current, purple observed future, blue unobserved (DEM), grey none"]
+    # wrapped to the figure's width (about 0.6 em a character), so a long name or stamp never runs off its edges
+    chars = int(fig.get_figwidth() * 72 / (0.6 * TITLE_PT))
+    fig.suptitle("\n".join(textwrap.fill(ln, chars) for ln in lines), fontsize=TITLE_PT)
+    n_lines = sum(len(textwrap.wrap(ln, chars)) for ln in lines)
+    fig.tight_layout(rect=(0, 0, 1, 1 - (1.4 * n_lines + 0.6) * TITLE_PT / (72 * fig.get_figheight())))  # the panels below the title
     save_figure(fig, out, overwrite, dpi=70)
     plt.close(fig)
     return out

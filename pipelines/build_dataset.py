@@ -7,9 +7,9 @@ cluster, then merge every drive's shards into one dataset with a provenance mani
 Each drive is one unit of work written under ``OUT/drives/<name>/``; a unit is done
 when its ``done.json`` (written last, atomically) records the hash of its inputs (bag
 sha256s, resolved config, gtgen version). A re-run skips done units and redoes changed
-ones; a killed run leaves only ``.partial`` stores, which the re-run replaces. Every
-stage is deterministic, so the result is the same however the work was split. The
-dataset holds the drives largest bags first (ties by name), the order they run in.
+ones; a killed run leaves only partial stores (``runtime/output.py``), which the re-run
+removes. Every stage is deterministic, so the result is the same however the work was
+split. The dataset holds the drives largest bags first (ties by name), the order they run in.
 """
 
 from __future__ import annotations

@@ -17,8 +17,8 @@ import torch
 
 from gtgen.train import distributed as D
 from gtgen.train.checkpoint import load_checkpoint
+from gtgen.train.evaluation import trained_model
 from gtgen.train.onnx import example_inputs
-from gtgen.train.trainer import _trained_model
 
 
 def latency_ms(ckpt: Path, device: str, repeats: int = 20) -> tuple[float, str]:
@@ -26,7 +26,7 @@ def latency_ms(ckpt: Path, device: str, repeats: int = 20) -> tuple[float, str]:
     state, tc, data_cfg = load_checkpoint(ckpt)
     dev = D.resolve_device(device)
     precision = D.resolve_precision(tc.precision, dev)
-    model = _trained_model(state, tc, data_cfg).to(dev)
+    model = trained_model(state, tc, data_cfg).to(dev)
     images, K, T, pts, cells, raw, prior, prior_micro = example_inputs(tc, tc.short_size, n_points=20000)  # the presets' full model
     points = torch.zeros(1, len(pts), 3)
     points[0] = pts * 30

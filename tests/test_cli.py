@@ -96,3 +96,23 @@ def test_a_missing_table_value_reads_n_a(capsys):
     out = capsys.readouterr().out
     assert "0.5" in out and "n/a" in out and "None" not in out
     assert na(None, " m") == "n/a" and na(0.25, " m") == "0.25 m"
+
+
+def test_viz_title_stays_within_the_figure(dataset, tmp_path, monkeypatch):
+    """The title is wrapped to the figure (it ran off both edges: "aset.zarr sample 5 ...
+    grey no"), also under a long dataset name."""
+    from gtgen import viz
+
+    titles = []
+
+    def save(fig, out, overwrite, dpi):  # the title's extent on the canvas the PNG is drawn on
+        titles.append((fig._suptitle.get_window_extent(fig.canvas.get_renderer()), fig.bbox.width, fig._suptitle.get_text()))
+
+    monkeypatch.setattr(viz, "save_figure", save)
+    long = tmp_path / ("a_dataset_of_the_field_campaign_with_a_long_descriptive_name_" * 2 + ".zarr")
+    long.symlink_to(dataset)
+    for path in (dataset, long):
+        viz.render_sample(path, 2, tmp_path / "s.png")
+        box, width, text = titles[-1]
+        assert box.x0 >= 0 and box.x1 <= width, (path.name, box, width)
+        assert path.name in text.replace("\n", "")

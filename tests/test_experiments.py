@@ -132,8 +132,9 @@ def test_switched_model_exports_its_own_onnx_graph(dataset, tmp_path):
 
     from gtgen.train.checkpoint import load_checkpoint
     from gtgen.train.data import ShardDataset
+    from gtgen.train.evaluation import trained_model as _trained_model
     from gtgen.train.onnx import Deployable, deploy_inputs
-    from gtgen.train.trainer import _collate, _trained_model, train
+    from gtgen.train.trainer import _collate, train
 
     cfg = _cfg(cameras=False, ranges="micro")
     train(dataset, tmp_path / "run", cfg, max_steps=1)
@@ -251,7 +252,7 @@ def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
 
     order = []
 
-    def fake_run_one(dataset, folder, cfg, split, baselines, say):
+    def fake_run_one(dataset, identity, folder, cfg, split, baselines, say, overwrite):
         order.append(folder.name)
         return {"train_s": 0.0}, True
 
@@ -259,7 +260,7 @@ def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
     plan = ex._plan(False, ex.parse_tables("i,iv"))
     base = ex.load_config(None, ex.preset_overrides("tiny"), {})
     res = ex.ExperimentsResult(tmp_path, tmp_path / "e.json", tmp_path / "e.md", "val", [], [])
-    ex._train_and_evaluate(tmp_path, tmp_path, plan, base, 2, 3, "val", None, None, res)
+    ex._train_and_evaluate(tmp_path, "id", tmp_path, plan, base, 2, 3, "val", None, None, res)
     seeds = [int(name.rsplit("seed", 1)[1]) for name in order]
     assert seeds == sorted(seeds) and len(order) == 3 * len(plan.needed)
     assert order[: len(plan.needed)] == [f"{name}-seed0" for name in plan.needed]
@@ -284,3 +285,64 @@ def test_experiments_that_fail_before_any_run_leave_no_folder(with_val, tmp_path
     p = _experiments(with_val, out, "--steps", "2", "--tables", "III", "--device", "cuda")
     assert p.returncode == 1 and "sees no CUDA device" in p.stderr
     assert not out.exists()
+
+
+def test_results_are_tied_to_their_dataset(dataset, with_val, tmp_path):
+    """A run resumed, or an experiments folder reused, on another dataset is one line
+    naming both (before, experiments named B with A's numbers); the records themselves."""
+    from gtgen.storage.dataset import DatasetStore
+    from gtgen.train.experiments import parse_tables, run_experiments
+    from gtgen.train.trainer import evaluate, train
+
+    a, b = DatasetStore(dataset).identity, DatasetStore(with_val).identity
+    assert a != b  # with_val differs from dataset in meta/split only
+    cfg = _cfg(steps=2, ckpt_every=1, val_every=0)
+    run = tmp_path / "exp" / "runs" / "ours-seed0"
+    train(dataset, run, cfg, max_steps=1)
+    assert json.loads((run / "metrics.json").read_text())["dataset"] == {"path": str(dataset), "identity": a}
+    assert evaluate(dataset, run / "ckpt.pt", split=None)["dataset"]["identity"] == a
+    with pytest.raises(TrainError) as err:
+        train(with_val, run, cfg, resume=True)
+    msg = str(err.value)
+    assert f"'{dataset}' (identity {a})" in msg and f"'{with_val}' (identity {b})" in msg and "another --run-dir" in msg
+    c = tmp_path / "c.yaml"
+    c.write_text(yaml.safe_dump(SMALL_TRAIN))
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(TrainError) as err:
+        run_experiments(with_val, tmp_path / "exp", steps=2, tables=parse_tables("iv"), config=c)
+    msg = str(err.value)
+    assert f"identity {a}" in msg and f"identity {b}" in msg and "another -o folder" in msg and "\n" not in msg
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # nothing trained, no tables written
+
+
+def test_a_datasets_identity_is_its_arrays(dataset, tmp_path):
+    """The same arrays under other root attributes (a rebuild's timings) keep the identity;
+    one chunk changed gives another."""
+    import shutil
+
+    import zarr
+
+    from conftest import reseal
+    from gtgen.storage.dataset import DatasetStore
+
+    copy = tmp_path / "d.zarr"
+    shutil.copytree(dataset, copy)
+    zarr.open_group(str(copy), mode="r+").attrs["provenance"] = {"units": [{"seconds": {"extract": 1.0}}]}
+    reseal(copy)
+    assert DatasetStore(copy).identity == DatasetStore(dataset).identity
+    g = zarr.open_group(str(copy), mode="r+")
+    g["meta/icp_fitness"][0] = 0.5
+    reseal(copy)
+    assert DatasetStore(copy).identity != DatasetStore(dataset).identity
+
+
+def test_experiments_overwrite_replaces_the_users_tables(with_val, tmp_path):
+    """The refusal says 'pass --overwrite': experiments has that option (it had none)."""
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / "experiments.md").write_text("my notes")
+    p = _experiments(with_val, out, "--steps", "2", "--tables", "III")
+    assert p.returncode == 1 and "--overwrite" in p.stderr
+    p = _experiments(with_val, out, "--steps", "2", "--tables", "III", "--overwrite")
+    assert p.returncode == 0, p.stderr
+    assert (out / "experiments.md").read_text().startswith("<!-- written by gtgen")

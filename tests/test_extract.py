@@ -15,7 +15,7 @@ from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
 from gtgen.errors import BagError, DecodeError, GtgenError, InputNotFoundError, StoreError, TopicError
 from gtgen.extract import run_extract
-from gtgen.runtime.output import partial_path
+from gtgen.runtime.output import Temporaries, partials
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.schema import DRIVE
 
@@ -150,7 +150,7 @@ def test_bad_bags_raise_clear_errors(drive_dir, tmp_path, cfg, make, err, needle
     with pytest.raises(err, match=needle.replace("(", r"\(").replace(")", r"\)")) as exc:
         run_extract([path], out, cfg)
     assert "\n" not in str(exc.value)
-    assert not out.exists() and not partial_path(out).exists()
+    assert not out.exists() and not partials(out)
 
 
 def _zero(p):
@@ -242,10 +242,11 @@ def test_all_nan_maps_are_not_used(drive_dir, cfg, tmp_path):
 
 def test_failed_extract_leaves_no_store_a_later_stage_accepts(drive_dir, tmp_path, cfg):
     out = tmp_path / "d.zarr"
-    (partial_path(out)).mkdir()
-    zarr.open_group(str(partial_path(out)), mode="w").attrs["store"] = "gtgen-drive"
-    with pytest.raises(StoreError, match="did not finish"):
-        DriveStore(out)
+    with Temporaries(out) as temps:  # a run that did not finish (killed: its partial store stays)
+        left = temps.name("partial")
+        zarr.open_group(str(left), mode="w").attrs["store"] = "gtgen-drive"
+        with pytest.raises(StoreError, match=f"did not finish left only '{left.name}'"):
+            DriveStore(out)
     zarr.open_group(str(out), mode="w").attrs.update({"store": "gtgen-drive", "version": DRIVE.version, "complete": False})
     with pytest.raises(StoreError, match="incomplete"):
         DriveStore(out)

@@ -97,7 +97,7 @@ def test_a_damaged_dataset_is_an_error_for_every_reader(damaged, name, cfg, tmp_
         for k in range(ds.n_samples):
             ds.inputs("jpeg")[k]
     assert "\n" not in str(err.value)
-    _, _, problems = verify_store(ds_path)
+    problems = verify_store(ds_path)[1].problems
     assert problems, name
     readers = {"verify": ["verify", ds_path], "report": ["report", ds_path, "-o", tmp_path / "rep"],
                "viz": ["viz", ds_path, "--sample", "16", "-o", tmp_path / "s.png"],
@@ -146,9 +146,92 @@ def test_training_on_a_damaged_dataset_stops(damaged, tmp_path):
     assert "damaged" in _one_line(p)
 
 
+# -- chunks bound to their place: swapped, copied or stale chunks ----------------------------
+
+def _swap(a: Path, b: Path) -> None:
+    assert a.stat().st_size == b.stat().st_size  # what the size check alone let through
+    data = a.read_bytes()
+    a.write_bytes(b.read_bytes())
+    b.write_bytes(data)
+
+
+def _other_shard_same_size(ds: Path, array: str) -> None:
+    """Put shard 2's bytes in shard 1's place, padded to shard 1's size (a whole, valid
+    shard: its inner chunks and its index, at the end, decode)."""
+    a, b = _shard(ds, array, 1), _shard(ds, array, 2)
+    data, index = b.read_bytes(), 16 * 16 + 4
+    a.write_bytes(data[:-index] + bytes(a.stat().st_size - len(data)) + data[-index:])
+
+
+PLACES = {  # damage, array, the samples it may name (either of a swapped pair), reads that must stop
+    "meta/t_ns shards swapped": (lambda ds: _swap(_shard(ds, "meta/t_ns", 0), _shard(ds, "meta/t_ns", 1)), "meta/t_ns", ("0-15", "16-31"),
+                                 (lambda ds: ds.meta("t_ns"), lambda ds: ds.meta("t_ns", [3, 4]), lambda ds: ds.rows("meta/t_ns")[3])),
+    "jpeg_nbytes shards swapped": (lambda ds: _swap(_shard(ds, "inputs/jpeg_nbytes", 0), _shard(ds, "inputs/jpeg_nbytes", 1)),
+                                   "inputs/jpeg_nbytes", ("0-15", "16-31"), (lambda ds: ds.jpeg_files(3), lambda ds: ds.jpeg_bytes())),
+    "a labels shard holding another's": (lambda ds: _other_shard_same_size(ds, "labels/micro/elevation_m"), "labels/micro/elevation_m",
+                                         ("16-31",), (lambda ds: ds.grid("labels", "micro", "elevation_m")[20],
+                                                   lambda ds: ds.group["labels/micro/elevation_m"][20])),
+}
+
+
+@pytest.mark.parametrize("name", list(PLACES))
+def test_a_chunk_out_of_its_place_is_an_error_naming_its_array(name, dataset, tmp_path):
+    """Chunks of the same size swapped, or a shard holding another's bytes (the size check
+    alone let both through, and they read as data): every reader stops with one line naming
+    the array, its samples and the command that rebuilds the store; verify names it."""
+    damage, array, samples, reads = PLACES[name]
+    ds_path = _copy(dataset, tmp_path / "dataset.zarr")
+    damage(ds_path)
+    for read in reads:
+        with pytest.raises(DamagedStoreError) as err:
+            read(DatasetStore(ds_path))
+        msg = str(err.value)
+        assert any(f"array '{array}' samples {a}" in msg for a in samples) and "other" in msg and "gtgen dem-align" in msg and "\n" not in msg, msg
+    v = verify_store(ds_path)[1]
+    assert any(f"array '{array}'" in p for p in v.problems), v.problems
+
+
+def test_viz_of_swapped_image_lengths_names_the_damage(dataset, tmp_path):
+    ds_path = _copy(dataset, tmp_path / "dataset.zarr")
+    PLACES["jpeg_nbytes shards swapped"][0](ds_path)
+    p = run_cli("viz", ds_path, "-n", "3", "-o", tmp_path / "s.png")
+    line = _one_line(p)
+    assert p.returncode == 1 and "inputs/jpeg_nbytes" in line and "gtgen dem-align" in line, line
+    assert not (tmp_path / "s.png").exists()
+
+
+def test_a_users_note_in_a_store_is_named_not_called_damage(dataset, tmp_path):
+    """A file zarr never reads (a note beside the arrays) is named as extra, removing it is
+    enough; the store is not called damaged, nor a rebuild advised."""
+    ds_path = _copy(dataset, tmp_path / "dataset.zarr")
+    (ds_path / "NOTES.txt").write_text("mine")
+    v = verify_store(ds_path)[1]
+    assert v.problems == [] and v.extra == ["NOTES.txt"]
+    p = run_cli("verify", ds_path)
+    line = _one_line(p)
+    assert p.returncode == 1 and "1 file gtgen did not write: 'NOTES.txt'" in line and "removing it is enough" in line, line
+    assert "damaged" not in line and "rebuild" not in line.replace("nothing to rebuild", "")
+    DatasetStore(ds_path).meta("t_ns")  # readers are not concerned
+
+
+def test_no_output_goes_inside_a_store(dataset, tmp_path):
+    """Every command's output inside a gtgen store (directly, or through a symlink) is
+    refused in one line before any work; the store stays whole."""
+    ds_path = _copy(dataset, tmp_path / "ws" / "dataset.zarr")
+    (tmp_path / "link").symlink_to(ds_path)
+    for cmd in (["report", ds_path, "-o", ds_path], ["viz", ds_path, "-o", tmp_path / "link" / "s.png"],
+                ["export", "geotiff", ds_path, "-o", ds_path / "tifs"], ["experiments", ds_path, "-o", ds_path / "exp", "--steps", "1"],
+                ["train", ds_path, "--run-dir", ds_path / "run", "--steps", "1"]):
+        p = run_cli(*cmd, cwd=tmp_path)
+        line = _one_line(p)
+        assert p.returncode == 1 and "is inside the dataset store" in line and p.stdout == "", (cmd, line)
+    v = verify_store(ds_path)[1]
+    assert v.problems == [] and v.extra == []
+
+
 def test_a_whole_store_verifies_and_reads_as_before(dataset):
-    fmt, n, problems = verify_store(dataset)
-    assert fmt.kind == "gtgen-dataset" and n > 10 and problems == []
+    fmt, v = verify_store(dataset)
+    assert fmt.kind == "gtgen-dataset" and v.checked > 10 and v.problems == [] and v.extra == []
     p = run_cli("verify", dataset)
     assert p.returncode == 0 and "whole" in p.stdout
 
@@ -176,7 +259,7 @@ def test_a_chunk_of_fill_is_not_stored_and_reads_as_fill(tmp_path):
 def test_a_store_without_its_manifest_or_with_a_stray_file(dataset, tmp_path):
     ds = _copy(dataset, tmp_path / "a.zarr")
     (ds / "labels" / "micro" / "elevation_m" / "c" / "9").write_bytes(b"stray")
-    _, _, problems = verify_store(ds)
+    problems = verify_store(ds)[1].problems
     assert any("not written with the store" in p for p in problems)
     shutil.rmtree(ds / "gtgen_manifest")
     with pytest.raises(DamagedStoreError, match="record of what was written"):
@@ -386,4 +469,4 @@ def test_a_stage_killed_then_run_again_gives_the_same_output(stage, drive_dir, d
         a, b = (DatasetStore(x) if stage == "dem-align" else DriveStore(x) for x in (ref, out))
         for path in (("labels/micro/elevation_m", "meta/T_crs_target") if stage == "dem-align" else ("samples/t_ns", "samples/jpeg")):
             np.testing.assert_array_equal(a.read(path), b.read(path), err_msg=path)
-        assert verify_store(out)[2] == []
+        assert verify_store(out)[1].problems == []

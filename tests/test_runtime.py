@@ -13,7 +13,7 @@ import pytest
 
 from conftest import SMALL, run_cli
 from gtgen.errors import GtgenError, LockedError
-from gtgen.runtime.output import atomic_output, lock, partial_path, stage_output
+from gtgen.runtime.output import atomic_output, lock, partials, stage_output
 from gtgen.runtime.pool import Pool
 
 
@@ -22,11 +22,11 @@ def _gtgen(*args: str, cwd: Path) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
-def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
+def _wait_for(folder: Path, pattern: str, proc: subprocess.Popen, timeout: float = 120) -> None:
     deadline = time.time() + timeout
-    while not path.exists():
-        assert proc.poll() is None, f"the command ended before writing {path}: {proc.stderr.read() if proc.stderr else ''}"
-        assert time.time() < deadline, f"{path} never appeared"
+    while not list(folder.glob(pattern)):
+        assert proc.poll() is None, f"the command ended before writing {pattern}: {proc.stderr.read() if proc.stderr else ''}"
+        assert time.time() < deadline, f"{pattern} never appeared"
         time.sleep(0.02)
 
 
@@ -42,7 +42,7 @@ def test_two_concurrent_fuse_on_one_workspace(drive_store, tmp_path):
     ws = _workspace(drive_store, tmp_path)
     first = _gtgen("fuse", "-c", SMALL, "--workers", "1", cwd=tmp_path)
     try:
-        _wait_for(ws / "fused.zarr.partial", first)
+        _wait_for(ws, "fused.zarr.*.partial", first)
         os.killpg(first.pid, signal.SIGSTOP)  # frozen while it holds the lock
         second = run_cli("fuse", "-c", SMALL, cwd=tmp_path, timeout=120)
         os.killpg(first.pid, signal.SIGCONT)
@@ -53,13 +53,13 @@ def test_two_concurrent_fuse_on_one_workspace(drive_store, tmp_path):
     finally:
         if first.poll() is None:
             os.killpg(first.pid, signal.SIGKILL)
-    assert (ws / "fused.zarr" / "zarr.json").is_file() and not partial_path(ws / "fused.zarr").exists()
+    assert (ws / "fused.zarr" / "zarr.json").is_file() and not partials(ws / "fused.zarr")
 
 
 def test_a_stage_killed_mid_write_leaves_nothing_the_next_stage_accepts(drive_store, tmp_path):
     ws = _workspace(drive_store, tmp_path)
     proc = _gtgen("fuse", "-c", SMALL, "--workers", "1", cwd=tmp_path)
-    _wait_for(ws / "fused.zarr.partial" / "fused", proc)
+    _wait_for(ws, "fused.zarr.*.partial/fused", proc)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     assert not (ws / "fused.zarr").exists()
@@ -68,7 +68,7 @@ def test_a_stage_killed_mid_write_leaves_nothing_the_next_stage_accepts(drive_st
     assert "fused store" in p.stderr and "did not finish" in p.stderr
     p = run_cli("fuse", "-c", SMALL, cwd=tmp_path)  # the kernel released the dead command's lock
     assert p.returncode == 0, p.stderr
-    assert not partial_path(ws / "fused.zarr").exists()
+    assert not partials(ws / "fused.zarr")
 
 
 def test_a_failed_block_leaves_no_output_and_the_old_one_stays(tmp_path):
@@ -81,7 +81,7 @@ def test_a_failed_block_leaves_no_output_and_the_old_one_stays(tmp_path):
         tmp.mkdir()
         (tmp / "a").write_text("two")
         raise RuntimeError("disk full, say")
-    assert (out / "a").read_text() == "one" and not partial_path(out).exists()
+    assert (out / "a").read_text() == "one" and not partials(out)
 
 
 def test_locks_exclusive_and_shared(tmp_path):
@@ -103,7 +103,7 @@ def test_atomic_file_output(tmp_path):
     with atomic_output(f) as tmp:
         tmp.write_bytes(b"x")
         assert not f.exists()
-    assert f.read_bytes() == b"x" and not partial_path(f).exists()
+    assert f.read_bytes() == b"x" and not partials(f)
 
 
 def _square(x: int) -> int:
@@ -130,3 +130,96 @@ def test_pool_map_submit_and_errors(workers, monkeypatch):
         # spawned workers get one OpenMP / BLAS thread unless the user set one
         assert pool.submit(_threads).result() == ("1" if workers > 1 else None)
     assert _threads() is None  # the parent's environment is restored
+
+
+# -- gtgen removes only what it wrote, whatever the name -------------------------------------
+
+def _users_lookalikes(out: Path) -> dict[Path, str]:
+    """Make the user's own files and folders named as gtgen's temporary names once were."""
+    mine = {out.with_name(out.name + ".old") / "notes.txt": "backup", out.with_name(out.name + ".partial"): "mine",
+            out.with_name(out.name + ".scratch.partial"): "mine too", out.with_name(out.name + ".1-0123abcd.partial"): "look-alike"}
+    for f, text in mine.items():
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text(text)
+    return mine
+
+
+@pytest.mark.parametrize("kind", ["folder", "file"])
+def test_outputs_never_remove_the_users_old_or_partial(kind, tmp_path):
+    """A first write, a replacement and a failed write of an output leave the user's
+    '<out>.old' folder and '<out>.partial' files as they were (they used to be removed)."""
+    out = tmp_path / ("x.zarr" if kind == "folder" else "x.json")
+    mine = _users_lookalikes(out)
+
+    def write(text: str) -> None:
+        with stage_output(out) as tmp:
+            if kind == "folder":
+                tmp.mkdir()
+                (tmp / "zarr.json").write_text('{"attributes": {"store": "gtgen-drive"}}')
+                (tmp / "a").write_text(text)
+            else:
+                tmp.write_text(f'{{"written_by": "written by gtgen", "a": "{text}"}}')
+
+    write("one")
+    write("two")  # replaces its own output
+    with pytest.raises(RuntimeError), stage_output(out) as tmp:
+        tmp.mkdir() if kind == "folder" else tmp.write_text("half")
+        raise RuntimeError("failed")
+    assert ((out / "a").read_text() if kind == "folder" else out.read_text()).count("two") == 1
+    assert {f: f.read_text() for f in mine} == mine
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted({out.name, *(f.relative_to(tmp_path).parts[0] for f in mine)})
+
+
+def _die_writing(out: Path) -> None:
+    """Run a process that starts writing ``out`` (folder) and is killed by the kernel."""
+    code = ("import os, signal, sys; from pathlib import Path; from gtgen.runtime.output import atomic_output\n"
+            "with atomic_output(Path(sys.argv[1])) as tmp:\n    tmp.mkdir(); (tmp / 'half').write_text('x')\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+
+
+def test_a_killed_writers_temporaries_go_at_the_next_write_and_nothing_else(tmp_path):
+    out = tmp_path / "x.zarr"
+    _die_writing(out)
+    left = partials(out)
+    assert len(left) == 1 and (left[0] / "half").is_file()  # the kernel's kill: no clean-up ran
+    mine = _users_lookalikes(out)
+    with atomic_output(out) as tmp:
+        tmp.mkdir()
+    assert not left[0].exists() and {f: f.read_text() for f in mine} == mine
+
+
+def test_the_cli_cleans_up_on_sigterm(dataset, tmp_path):
+    """SIGTERM ends a command through its clean-up: no temporary output is left (the
+    command is held just before it renames its output into place)."""
+    code = ("import sys, time; import gtgen.runtime.output as o; o._replace = lambda *a: time.sleep(120)\n"
+            "from gtgen.cli import main; sys.argv[0] = 'gtgen'; main()")
+    proc = subprocess.Popen([sys.executable, "-c", code, "viz", str(dataset), "-o", str(tmp_path / "s.png")], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    _wait_for(tmp_path, "s.png.*.partial", proc)
+    os.killpg(proc.pid, signal.SIGTERM)
+    assert proc.wait(timeout=60) == 143
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_latest_is_repointed_only_when_gtgen_made_it(tmp_path):
+    from gtgen.runtime.output import point_link
+
+    runs = tmp_path / "runs"
+    for name in ("a", "b", "mydata"):
+        (runs / name).mkdir(parents=True)
+    ours = {runs / "a", runs / "b"}
+    latest = runs / "latest"
+    assert point_link(latest, runs / "a", lambda p: p in ours) is None and os.readlink(latest) == "a"
+    assert point_link(latest, runs / "b", lambda p: p in ours) is None and os.readlink(latest) == "b"
+    latest.unlink()
+    latest.symlink_to("mydata")  # the user's link
+    note = point_link(latest, runs / "a", lambda p: p in ours)
+    assert os.readlink(latest) == "mydata" and "points at 'mydata'" in note and "left as it is" in note
+    latest.unlink()
+    latest.symlink_to(runs / "a")  # the user's link, by an absolute path, to a run
+    assert point_link(latest, runs / "b", lambda p: p in ours) is not None and os.readlink(latest) == str(runs / "a")
+    latest.unlink()
+    latest.write_text("a file")
+    assert point_link(latest, runs / "b", lambda p: p in ours) is not None and latest.read_text() == "a file"
+    assert sorted(p.name for p in runs.iterdir()) == ["a", "b", "latest", "mydata"]

@@ -184,13 +184,20 @@ def test_onnx_export_matches_torch(dataset, tmp_path):
 
     from gtgen.train.checkpoint import load_checkpoint
     from gtgen.train.data import ShardDataset
+    from gtgen.train.evaluation import trained_model as _trained_model
     from gtgen.train.onnx import INPUTS, Deployable, deploy_inputs
-    from gtgen.train.trainer import _collate, _trained_model, train
+    from gtgen.train.trainer import _collate, train
 
     cfg = load_config(None, SMALL_TRAIN)
     train(dataset, tmp_path / "run", cfg, max_steps=2)
     p = run_cli("export", "onnx", "--ckpt", tmp_path / "run" / "ckpt.pt", "-o", tmp_path / "m.onnx", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
+    # a folder as the output, even with --overwrite: one line saying so (was "Is a directory: 'myout.partial'")
+    (tmp_path / "myout").mkdir()
+    p = run_cli("export", "onnx", "--ckpt", tmp_path / "run" / "ckpt.pt", "-o", "myout/", "--overwrite", cwd=tmp_path)
+    assert p.returncode == 1 and p.stderr.strip() == ("error: output 'myout' is a folder, and this output is one file: "
+                                                      "give the file's path (a name inside the folder, say)"), p.stderr
+    assert list((tmp_path / "myout").iterdir()) == [] and sorted(x.name for x in tmp_path.iterdir()) == ["latest", "m.onnx", "myout", "run"]
     state, tc, data_cfg = load_checkpoint(tmp_path / "run" / "ckpt.pt")
     model = _trained_model(state, tc, data_cfg)
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])

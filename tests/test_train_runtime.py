@@ -307,3 +307,43 @@ def test_a_checkpoint_is_loaded_as_data_never_run(tmp_path):
     assert not marker.exists() and "\n" not in str(err.value)
     with pytest.raises(TrainError, match="is a folder, not a checkpoint file"):
         load_checkpoint(tmp_path)
+
+
+@pytest.mark.parametrize("free_gib, says", [(12.0, "train.batch_size: 2 needs about"), (3.0, "even train.batch_size: 1 needs about")])
+def test_a_run_that_does_not_fit_the_memory_stops_before_any_work(dataset, tmp_path, monkeypatch, free_gib, says):
+    """The paper preset at its batch 6 on the CPU was killed by the kernel mid-step; now it
+    is one line saying what fits, before the model or the data are touched (the free
+    memory injected, nothing allocated)."""
+    from gtgen.train import memory
+    from gtgen.train.trainer import preset_overrides, train
+
+    monkeypatch.setattr(memory, "available_bytes", lambda device: int(free_gib * 2**30))
+    cfg = load_config(None, preset_overrides("paper"))
+    with pytest.raises(TrainError) as err:
+        train(dataset, tmp_path / "run", cfg, device="cpu")
+    msg = str(err.value)
+    assert msg.startswith("the paper preset at train.batch_size 6 needs about") and says in msg and "\n" not in msg, msg
+    assert f"{free_gib:.1f} GiB is free" in msg and "train.check_memory: false" in msg
+    assert not (tmp_path / "run").exists()
+    from gtgen.train.memory import need_gib
+
+    assert need_gib(cfg.train, 1) == pytest.approx(5.0, abs=0.3)  # the README's measured peak RSS at batch 1
+    assert need_gib(cfg.train, 6) > 20.0  # killed at 21.5 GB (20.0 GiB) before the step ended
+
+
+def test_torchrun_into_a_busy_run_folder_says_it_once(dataset, tmp_path):
+    """Every rank stops; rank 0 alone prints the one-line cause (torchrun's own report of
+    the failed processes follows it: the README says so)."""
+    from gtgen.runtime.output import lock
+
+    torchrun = Path(sys.executable).parent / "torchrun"
+    run = tmp_path / "runs" / "busy"
+    run.mkdir(parents=True)
+    env = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
+    cmd = [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "gtgen", "train", str(dataset), "--steps", "1",
+           "--run-dir", str(run), "--config", str(_config_file(tmp_path, batch_size=2))]
+    with lock(run):
+        p = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=env)
+    assert p.returncode == 1
+    errors = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "is being written by another gtgen command" in errors[0], p.stderr[-3000:]

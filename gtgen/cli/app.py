@@ -19,7 +19,7 @@ import typer
 from typer.core import TyperGroup
 
 from gtgen import __version__
-from gtgen.errors import ConfigError, GtgenError
+from gtgen.errors import ConfigError, GtgenError, RankError
 
 
 class Group(TyperGroup):
@@ -185,16 +185,26 @@ def _fail(message: str) -> None:
     sys.exit(1)
 
 
+def _terminated(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
     """Run the CLI: a usage error (a bad option value, a missing argument) prints the usage
     and the error on one line and exits 2; gtgen errors and OS errors (a full disk, a
-    permission) print one line and exit 1."""
+    permission) print one line and exit 1. SIGTERM ends the command as Ctrl-C does, through
+    its clean-up (the temporary outputs go), with exit code 143."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         code = app(prog_name="gtgen", standalone_mode=False)
     except typer.TyperException as err:  # click's usage errors
         _usage_error(err)
     except typer.Abort:
         typer.echo("error: aborted", err=True)
+        sys.exit(1)
+    except RankError:  # under torchrun, rank 0 prints the error its processes share
         sys.exit(1)
     except GtgenError as err:
         _fail(str(err))

@@ -62,6 +62,8 @@ def train_cmd(
         ]
         if res.peak_memory_mib is not None:
             rows.append((f"peak GPU memory{tag}", f"{res.peak_memory_mib:.0f} MiB"))
+        if res.latest_note:
+            rows.append((f"latest{tag}", f"not updated: {res.latest_note}"))
     if main:
         table("gtgen train", rows)
 
@@ -173,6 +175,7 @@ def experiments_cmd(
     tables: str = typer.Option("I,II,III,IV", metavar="I,II,III,IV", help="the paper's tables to reproduce (II shares I's runs)"),
     out: Path = typer.Option(Path("experiments"), "-o", "--out", help="folder of the runs, experiments.json and experiments.md"),
     device: Optional[str] = typer.Option(None, metavar="DEVICE", help="auto | cpu | cuda | cuda:N [default: train.device]"),
+    overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
     """The paper's Tab. I-IV on the dataset: every row trained (one folder per run and seed),
@@ -200,7 +203,7 @@ def experiments_cmd(
     def line(text: str) -> None:  # one line each, whatever its length: the log of a long job
         con.print(text, markup=False, highlight=False, soft_wrap=True)
 
-    res = run_experiments(dataset, out, preset, seeds, steps, parse_tables(tables), config, device, progress=line)
+    res = run_experiments(dataset, out, preset, seeds, steps, parse_tables(tables), config, device, progress=line, overwrite=overwrite)
     for note in res.notes:
         line(f"note: {note}")
     for tab in res.tables:

@@ -128,7 +128,9 @@ def verify(
     store: Path = typer.Argument(WORKSPACE / "dataset.zarr", metavar="STORE", help="a store gtgen wrote: drive, fused or dataset"),
 ) -> None:
     """Check a store whole: every chunk and shard file it was written with is there with its
-    size, metadata unchanged, every chunk decodes (checksums). Exit code 1 if damaged.
+    size and CRC32C, metadata unchanged, every chunk decodes (checksums). Exit code 1 if
+    damaged, or if it holds files it was not written with (then it says which: removing
+    them is enough).
 
     **Examples**
 
@@ -140,13 +142,23 @@ def verify(
     from gtgen.errors import GtgenError
     from gtgen.storage.stores import verify_store
 
-    fmt, n, problems = verify_store(store)
-    rows: list[tuple[str, Any]] = [("store", store), ("kind", fmt.kind), ("files checked", n)]
-    rows += [("problem", p) for p in problems[:20]]
-    if len(problems) > 20:
-        rows.append(("", f"... and {len(problems) - 20} more"))
-    rows.append(("verdict", "whole" if not problems else f"DAMAGED ({len(problems)} problems)"))
+    fmt, v = verify_store(store)
+    rows: list[tuple[str, Any]] = [("store", store), ("kind", fmt.kind), ("files checked", v.checked)]
+    rows += [("problem", p) for p in v.problems[:20]]
+    if len(v.problems) > 20:
+        rows.append(("", f"... and {len(v.problems) - 20} more"))
+    rows += [("not written by gtgen", f) for f in v.extra[:20]]
+    if len(v.extra) > 20:
+        rows.append(("", f"... and {len(v.extra) - 20} more"))
+    files = f"{len(v.extra)} file{'s' if len(v.extra) > 1 else ''}"
+    verdict = f"DAMAGED ({len(v.problems)} problems)" if v.problems else "whole" + (f", with {files} gtgen did not write" if v.extra else "")
+    rows.append(("verdict", verdict))
     table("gtgen verify", rows)
-    if problems:
-        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise GtgenError(f"store '{store}' is damaged: {problems[0]}{more}; rebuild it with '{fmt.made_by}'")
+    if v.problems:
+        more = f" (and {len(v.problems) - 1} more)" if len(v.problems) > 1 else ""
+        raise GtgenError(f"store '{store}' is damaged: {v.problems[0]}{more}; rebuild it with '{fmt.made_by}'")
+    if v.extra:
+        more = f" (and {len(v.extra) - 1} more)" if len(v.extra) > 1 else ""
+        them = "them" if len(v.extra) > 1 else "it"
+        raise GtgenError(f"store '{store}' holds {files} gtgen did not write: '{v.extra[0]}'{more}; its data is whole: "
+                         f"removing {them} is enough (nothing to rebuild)")

@@ -219,7 +219,7 @@ def _to_cog(src_path: Path, path: Path, overwrite: bool) -> None:
         rio_copy(src, str(cog), driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER",
                  overview_resampling="nearest" if kind in "ui" else "average")
     src_path.unlink()
-    with atomic_output(path, overwrite) as tmp:
+    with atomic_output(path, overwrite, file=True) as tmp:
         try:
             os.replace(cog, tmp)
         except OSError as err:

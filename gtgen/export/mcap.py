@@ -26,9 +26,8 @@ signature (``custom_data.written_by``), so a later export may replace it.
 
 from __future__ import annotations
 
-import contextlib
 import shutil
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from gtgen.bag.decode.image import file_size
 from gtgen.config import RANGES
 from gtgen.errors import GtgenError
 from gtgen.geometry import matrix_to_quat, yaw_transform
-from gtgen.runtime.output import PARTIAL, remove, signature, stage_output
+from gtgen.runtime.output import signature, stage_output, temporary
 from gtgen.runtime.progress import track
 from gtgen.storage.dataset import DatasetStore, jpeg_files
 
@@ -93,9 +92,9 @@ def export_mcap(dataset: Path, out: Path, overwrite: bool = False) -> McapExport
     fac = MessageFactory(ros1=False)
     res = McapExport(out)
     # rosbags writes a recording folder; it lies beside the output (the same file system, so
-    # the file moves by a rename) under a partial name, which a run after a kill removes
-    scratch = out.with_name(out.name + ".scratch" + PARTIAL)
-    with stage_output(out, reads=[dataset], overwrite=overwrite) as tmp, _scratch(scratch):
+    # the file moves by a rename) under a temporary name of this run (runtime/output.py)
+    with stage_output(out, reads=[dataset], overwrite=overwrite, file=True) as tmp, temporary(out) as scratch:
+        scratch.mkdir()
         w = open_mcap_writer(scratch / "bag")
         w.set_custom_data("written_by", signature())  # type: ignore[attr-defined]
         topics = _Topics(w, fac.store)
@@ -124,17 +123,6 @@ def _map_poses(ds: DatasetStore) -> NDArray[np.float64]:
         pos, yaw = ds.meta("pos_odom_m")[unplaced], ds.meta("yaw_odom_rad")[unplaced]
         T[unplaced] = [yaw_transform(*p, y) for p, y in zip(pos, yaw)]
     return T
-
-
-@contextlib.contextmanager
-def _scratch(folder: Path) -> Iterator[None]:
-    """Make ``folder`` anew for the block, and remove it after."""
-    remove(folder)
-    folder.mkdir(parents=True)
-    try:
-        yield
-    finally:
-        remove(folder)
 
 
 def _read_block(ds: DatasetStore, ks: NDArray) -> dict:

@@ -1,13 +1,22 @@
-"""Atomic outputs, what gtgen may replace, and locks: the one place where they live.
+"""Atomic outputs, what gtgen may replace or remove, and locks: the one place where they live.
 
-Every stage writes its output (a store folder or a file) under ``<name>.partial`` and
-renames it into place only when complete, so a kill, a full disk or an error leaves
-nothing that a later stage accepts; the partial output is removed on failure, and so are
-the folders made for it. An existing output is replaced only when gtgen wrote it
-(``owned``: a gtgen store, or a file bearing ``SIGNATURE``, which every file gtgen
-writes carries near its start or end), or with ``overwrite`` (the CLI's
-``--overwrite``); anything else at the path is the user's and stops the command with
-a one-line error.
+Every stage writes its output (a store folder or a file) under a temporary name beside it
+and renames it into place only when complete, so a kill, a full disk or an error leaves
+nothing that a later stage accepts. gtgen's temporary names carry a token of their run
+(``<name>.<pid>-<8 hex digits>.partial``; ``.old`` for the output a replacement moves
+aside, ``.scratch`` for a writer's own scratch), and each is recorded in the machine's gtgen
+folder before it exists (``Temporaries``): a record per output being written, held by a
+``flock`` while its writer lives. So a temporary name never is a user's file, and gtgen
+removes only what it recorded: on every exit path of the writer (an error, Ctrl-C, SIGTERM
+through the CLI), or, when the kernel killed it, at the next write of the same output on
+this machine (the dead writer's lock is released, its record says what it left).
+
+An existing output is replaced only when gtgen wrote it (``owned``: a gtgen store, or a
+file bearing ``SIGNATURE``, which every file gtgen writes carries near its start or end),
+or with ``overwrite`` (the CLI's ``--overwrite``); anything else at the path is the user's
+and stops the command with a one-line error. No output goes inside a gtgen store
+(``check_outside_stores``, part of ``check_replace``): a store holds only what its stage
+wrote. A symlink is repointed only when gtgen made it (``point_link``).
 
 While it writes, a stage holds an exclusive lock on its output and a shared lock on each
 input (``flock`` on a lock file named after the path, in a lock folder of the machine's:
@@ -23,13 +32,16 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import glob
 import hashlib
 import json
 import os
+import re
+import secrets
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from gtgen.errors import GtgenError, LockedError, OutputExistsError
@@ -38,11 +50,14 @@ PARTIAL = ".partial"
 LOCK = ".lock"
 SIGNATURE = "written by gtgen"  # in every file gtgen writes (JSON key, PNG text, TIFF tag, MCAP metadata, YAML comment)
 _SIGNATURE_WINDOW = 1 << 22  # bytes searched at each end of a file
+TEMP_TAGS = ("partial", "old", "scratch")  # the temporary names of an output: <name>.<token>.<tag>
+_TOKEN = r"\d+-[0-9a-f]{8}"
 
 
-def partial_path(path: Path) -> Path:
-    """Return where ``path`` is written before it is complete."""
-    return path.with_name(path.name + PARTIAL)
+def partials(path: Path) -> list[Path]:
+    """Return the partial outputs of ``path`` that runs left beside it (unfinished or killed)."""
+    pattern = re.compile(re.escape(path.name) + r"\." + _TOKEN + re.escape(PARTIAL))
+    return [p for p in map(Path, glob.glob(glob.escape(str(path)) + ".*" + PARTIAL)) if pattern.fullmatch(p.name)]
 
 
 def signature() -> str:
@@ -63,23 +78,22 @@ def lock_dir() -> Path:
     return Path(tempfile.gettempdir()) / f"gtgen-locks-{os.getuid()}"
 
 
+def _path_key(path: Path) -> str:
+    """Return the key of ``path`` in the lock folder's names (a hash of its absolute path)."""
+    return hashlib.sha256(os.path.abspath(path).encode()).hexdigest()[:16]
+
+
 def lock_path(path: Path) -> Path:
     """Return the lock file of ``path`` (named after its absolute path, in ``lock_dir``)."""
-    full = os.path.abspath(path)
-    return lock_dir() / f"{hashlib.sha256(full.encode()).hexdigest()[:16]}-{Path(full).name}{LOCK}"
+    return lock_dir() / f"{_path_key(path)}-{Path(os.path.abspath(path)).name}{LOCK}"
 
 
 def owned(path: Path) -> bool:
     """Whether ``path`` holds something gtgen wrote: a gtgen store (its ``zarr.json``
-    names a gtgen store kind), a partial output, or a file bearing ``SIGNATURE``."""
-    if path.name.endswith(PARTIAL):
-        return True
+    names a gtgen store kind) or a file bearing ``SIGNATURE``. A name is no proof: a
+    user's ``x.partial`` is the user's."""
     if path.is_dir():
-        try:
-            attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
-        except (OSError, ValueError, AttributeError):
-            return False
-        return str(attrs.get("store", "")).startswith("gtgen-")
+        return store_kind(path) is not None
     try:
         with open(path, "rb") as f:
             head = f.read(_SIGNATURE_WINDOW)
@@ -94,9 +108,40 @@ def owned(path: Path) -> bool:
     return sig in head or sig in tail
 
 
-def check_replace(path: Path, overwrite: bool = False) -> None:
+def store_kind(folder: Path) -> str | None:
+    """Return the kind of the gtgen store at ``folder`` ('gtgen-dataset', ...), or None
+    when it is none (no ``zarr.json`` naming a gtgen kind)."""
+    try:
+        attrs = json.loads((folder / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return None
+    kind = attrs.get("store") if isinstance(attrs, dict) else None
+    return kind if isinstance(kind, str) and kind.startswith("gtgen-") else None
+
+
+def check_outside_stores(path: Path) -> None:
+    """Raise OutputExistsError if ``path`` lies inside a gtgen store (through symlinks
+    too): a store holds only what its stage wrote, and anything else in it makes
+    ``gtgen verify`` call it damaged."""
+    full = Path(os.path.abspath(path))
+    real = full.parent.resolve()
+    folders = [*full.parents, *((real, *real.parents) if real != full.parent else ())]
+    for folder in folders:
+        kind = store_kind(folder)
+        if kind is not None:
+            where = folder if Path(path).is_absolute() else os.path.relpath(folder)
+            raise OutputExistsError(f"output '{path}' is inside the {kind.removeprefix('gtgen-')} store '{where}', which holds "
+                                    "only what gtgen wrote into it; choose an output outside the store")
+
+
+def check_replace(path: Path, overwrite: bool = False, file: bool = False) -> None:
     """Raise OutputExistsError if writing ``path`` would replace something gtgen did not
-    write (unless ``overwrite``)."""
+    write (unless ``overwrite``), put an output inside a gtgen store, or (``file``: the
+    output is a file) replace a folder."""
+    check_outside_stores(path)
+    if file and path.is_dir():
+        raise OutputExistsError(f"output '{path}' is a folder, and this output is one file: give the file's path "
+                                "(a name inside the folder, say)")
     if overwrite or not (path.exists() or path.is_symlink()) or owned(path):
         return
     what = "folder" if path.is_dir() else "file"
@@ -112,15 +157,96 @@ def remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _replace(tmp: Path, path: Path) -> None:
+def _temps_dir() -> Path:
+    return lock_dir() / "temps"
+
+
+class Temporaries:
+    """The temporary names of one write of output ``path`` (``name(tag)``, a tag of
+    ``TEMP_TAGS``), recorded before they exist and removed when the block ends, whatever
+    ends it. Entering first removes what dead writers of the same output left (their
+    records' locks are free)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.token = f"{os.getpid()}-{secrets.token_hex(4)}"
+        self.prefix = f"{self.path.name}.{self.token}."
+        self._fd: int | None = None
+        self._record: Path | None = None
+
+    def name(self, tag: str) -> Path:
+        """Return the temporary path of ``tag`` (not made)."""
+        if tag not in TEMP_TAGS:
+            raise ValueError(f"temporary tag {tag!r}; expected one of {TEMP_TAGS}")
+        return self.path.with_name(self.prefix + tag)
+
+    def __enter__(self) -> Temporaries:
+        _sweep(self.path)
+        folder = _temps_dir()
+        stem = f"{_path_key(self.path)}-{self.token}"
+        try:
+            folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+            new = folder / f"{stem}.new"
+            fd = os.open(new, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError as err:
+            raise GtgenError(f"cannot record a temporary output in '{folder}' ({err.strerror}); set GTGEN_LOCK_DIR to a writable folder") from err
+        fcntl.flock(fd, fcntl.LOCK_EX)  # held while this process lives: a sweep sees the writer alive
+        os.write(fd, json.dumps({"output": os.path.abspath(self.path), "prefix": self.prefix, "pid": os.getpid()}).encode())
+        self._record = folder / f"{stem}.json"
+        os.rename(new, self._record)  # a record appears whole and locked
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            for tag in TEMP_TAGS:
+                remove(self.name(tag))
+        finally:
+            if self._record is not None:
+                self._record.unlink(missing_ok=True)
+            if self._fd is not None:
+                os.close(self._fd)
+
+
+def _sweep(path: Path) -> None:
+    """Remove the temporary names that writers of ``path`` recorded and left when killed
+    (a record whose lock is free: the kernel released it with its process)."""
+    for rec in glob.glob(str(_temps_dir() / f"{_path_key(path)}-*.json")):
+        try:
+            fd = os.open(rec, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if os.fstat(fd).st_nlink == 0:  # its writer finished meanwhile and removed it
+                continue
+            doc = json.loads(os.read(fd, 1 << 16))
+            if doc["output"] != os.path.abspath(path):
+                continue
+            for tag in TEMP_TAGS:
+                remove(Path(doc["output"]).with_name(doc["prefix"] + tag))
+            os.unlink(rec)
+        except (OSError, ValueError, KeyError, TypeError):  # alive (the lock is held), or not a record of ours
+            continue
+        finally:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def temporary(path: Path, tag: str = "scratch") -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (not made) for the block, removed after it."""
+    with Temporaries(path) as t:
+        yield t.name(tag)
+
+
+def _replace(tmp: Path, path: Path, old: Path) -> None:
     """Put the completed ``tmp`` at ``path``: one rename for a file; two for a folder
-    (the old one moves aside first and is removed after)."""
+    (the one there moves aside to ``old`` first, a temporary name of this write, and is
+    removed after)."""
     if not tmp.is_dir():
         os.replace(tmp, path)
         return
-    old = path.with_name(path.name + ".old")
-    remove(old)
-    if path.exists():
+    if path.exists() or path.is_symlink():
         path.rename(old)
     tmp.rename(path)
     remove(old)
@@ -166,30 +292,29 @@ def output_folder(folder: Path) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def atomic_output(path: Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield the partial path to write ``path`` into (a file or a folder, made by the
-    caller); on success it replaces ``path``, on any failure it is removed, with the
-    folders made for it. Refuses (OutputExistsError) to replace what gtgen did not write,
-    unless ``overwrite``. No lock: use inside ``stage_output`` or a held ``lock``."""
-    check_replace(path, overwrite)
+def atomic_output(path: Path, overwrite: bool = False, file: bool = False) -> Iterator[Path]:
+    """Yield the temporary path to write ``path`` into (a file or a folder, made by the
+    caller; ``file``: it must be a file); on success it replaces ``path``, on any failure it
+    is removed, with the folders made for it. Refuses (OutputExistsError) to replace what
+    gtgen did not write, unless ``overwrite``. No lock: use inside ``stage_output`` or a
+    held ``lock``."""
+    check_replace(path, overwrite, file)
     made = _make_parents(path.parent)
-    tmp = partial_path(path)
-    remove(tmp)
     try:
-        yield tmp
-        if not (tmp.exists() or tmp.is_symlink()):
-            raise GtgenError(f"nothing was written for '{path}'")
-        check_replace(path, overwrite)  # what appeared there meanwhile is not ours to replace either
-        _replace(tmp, path)
-    except OSError as err:
-        remove(tmp)
-        _remove_made(made)
-        full = _no_space(err, path)
-        if full is not None:
-            raise full from err
-        raise
+        with Temporaries(path) as temps:
+            tmp = temps.name("partial")
+            try:
+                yield tmp
+                if not (tmp.exists() or tmp.is_symlink()):
+                    raise GtgenError(f"nothing was written for '{path}'")
+                check_replace(path, overwrite, file)  # what appeared there meanwhile is not ours to replace either
+                _replace(tmp, path, temps.name("old"))
+            except OSError as err:
+                full = _no_space(err, path)
+                if full is not None:
+                    raise full from err
+                raise
     except BaseException:
-        remove(tmp)
         _remove_made(made)
         raise
 
@@ -197,7 +322,7 @@ def atomic_output(path: Path, overwrite: bool = False) -> Iterator[Path]:
 def write_atomic(path: Path, data: bytes | str, overwrite: bool = False) -> None:
     """Write a whole file atomically (written beside, then renamed); the caller's ``data``
     carries ``SIGNATURE`` (see ``write_json``)."""
-    with atomic_output(path, overwrite) as tmp:
+    with atomic_output(path, overwrite, file=True) as tmp:
         tmp.write_bytes(data.encode() if isinstance(data, str) else data)
 
 
@@ -208,9 +333,28 @@ def write_json(path: Path, obj: dict, overwrite: bool = False, **dumps: object) 
 
 def save_figure(fig: object, path: Path, overwrite: bool = False, dpi: int = 80) -> Path:
     """Save a matplotlib figure as a PNG atomically (the signature in its text chunk); return ``path``."""
-    with atomic_output(path, overwrite) as tmp:
+    with atomic_output(path, overwrite, file=True) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, metadata={"Software": signature()})  # type: ignore[attr-defined]
     return path
+
+
+def point_link(link: Path, target: Path, ours: Callable[[Path], bool]) -> str | None:
+    """Make the symlink ``link`` point at ``target`` (a sibling, by its name) when nothing
+    is at ``link`` or gtgen made what is there: a symlink to a sibling that ``ours`` says
+    gtgen wrote. Return None when done, else why ``link`` was left as it is."""
+    if link.is_symlink():
+        was = os.readlink(link)
+        if was == target.name:
+            return None
+        if os.sep in was or not ours(link.parent / was):
+            return f"'{link}' points at '{was}', not at a folder gtgen wrote; left as it is (remove it, and gtgen makes it anew)"
+    elif link.exists():
+        return f"'{link}' is not a symlink gtgen made; left as it is"
+    with Temporaries(link) as temps:
+        tmp = temps.name("partial")
+        tmp.symlink_to(target.name)
+        os.replace(tmp, link)  # one rename: never a moment without the link
+    return None
 
 
 def _busy(fd: int, path: Path, file: Path) -> LockedError:
@@ -254,14 +398,14 @@ def lock(path: Path, shared: bool = False) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def stage_output(path: Path, reads: Sequence[Path] = (), overwrite: bool = False) -> Iterator[Path]:
+def stage_output(path: Path, reads: Sequence[Path] = (), overwrite: bool = False, file: bool = False) -> Iterator[Path]:
     """Yield the partial path of a stage's output ``path`` while holding its lock and a
     shared lock on each input in ``reads``; the output appears only when the block succeeds
-    (see ``atomic_output`` for what it may replace)."""
-    check_replace(path, overwrite)  # before any work
+    (see ``atomic_output`` for what it may replace; ``file``: the output is a file)."""
+    check_replace(path, overwrite, file)  # before any work
     with contextlib.ExitStack() as stack:
         stack.enter_context(lock(path))
         for p in reads:
             if Path(p).resolve() != Path(path).resolve():
                 stack.enter_context(lock(Path(p), shared=True))
-        yield stack.enter_context(atomic_output(path, overwrite))
+        yield stack.enter_context(atomic_output(path, overwrite, file))

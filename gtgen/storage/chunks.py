@@ -37,7 +37,7 @@ from gtgen.errors import StoreError
 ZSTD_LEVEL = 1  # faster to write than zarr's default level, about the same size on elevation maps
 CHECKSUM = True  # each chunk carries zstd's content checksum (4 bytes): a changed byte fails its decode
 
-Check = Callable[[str, "int | None"], None]  # (chunk key, bytes read or None if absent): raises if the store is damaged
+Check = Callable[[str, Any], None]  # (chunk key, the file's bytes read whole, or None if absent): raises if the store is damaged
 
 
 def compressors() -> list:
@@ -215,7 +215,7 @@ class ChunkFiles:
         except FileNotFoundError:
             data = None
         if self.check is not None:
-            self.check(self._key(k), None if data is None else len(data))
+            self.check(self._key(k), data)
         return Encoded(data, self.dtype, (1, *self.row_shape), self.fill)
 
     def read(self, k: int) -> np.ndarray:
@@ -355,7 +355,7 @@ class RangeReader:
             except FileNotFoundError:
                 data = None
             if self.check is not None:
-                self.check(key, None if data is None else len(data))
+                self.check(key, data)
             self._last = (i, Encoded(data, np.dtype(self.arr.dtype), (self.c, *self.arr.shape[1:]), self.arr.fill_value).decode())
         return self._last[1]
 

@@ -66,14 +66,18 @@ def shard_file(root: Path, path: str, k: int, ndim: int) -> Path:
     return chunk_file(root, path, (k,) + (0,) * (ndim - 1))
 
 
-def read_shard(file: Path, n: int) -> list[memoryview | None]:
+def read_shard(file: Path, n: int, check: Any = None, key: str = "") -> list[memoryview | None]:
     """Return the ``n`` encoded inner chunks of a shard file (None where empty), as views
-    of the file's bytes (no copy)."""
-    if not file.is_file():
+    of the file's bytes (no copy); ``check(key, bytes or None)`` judges the file read whole
+    (the source store's manifest check)."""
+    raw = file.read_bytes() if file.is_file() else None
+    if check is not None:
+        check(key, raw)
+    if raw is None:
         return [None] * n
     import google_crc32c
 
-    data = memoryview(file.read_bytes())
+    data = memoryview(raw)
     index = bytes(data[-(16 * n + 4):])
     if len(index) != 16 * n + 4 or google_crc32c.value(index[:-4]) != int.from_bytes(index[-4:], "little"):
         raise ValueError(f"shard '{file}' has a bad index (expected {n} inner chunks)")
@@ -104,8 +108,8 @@ def write_shard(file: Path, chunks: list[bytes | memoryview | None]) -> None:
 def copy_samples(a: Any, src_root: Path, dst: Any, dst_root: Path, path: str, off: int, n: int, check: Any = None) -> bool:
     """Copy samples [0, n) of array ``a`` (at ``path`` in the store at ``src_root``) to
     [off, off + n) of ``dst``'s array ``path`` as encoded bytes; return False (copying
-    nothing) if the two layouts differ. ``check(key, nbytes)`` judges each source shard
-    file (the source store's manifest check)."""
+    nothing) if the two layouts differ. ``check(key, bytes or None)`` judges each source
+    shard file read whole (the source store's manifest check)."""
     b = dst[path]
     layout = sample_layout(a)
     if layout is None or layout != sample_layout(b) or a.shape[0] < n or b.shape[0] < off + n:
@@ -118,10 +122,8 @@ def copy_samples(a: Any, src_root: Path, dst: Any, dst_root: Path, path: str, of
         for g in range(max(off, k * K), min(off + n, (k + 1) * K)):
             s = g - off
             if cache[0] != s // K:
-                file = shard_file(src_root, path, s // K, a.ndim)
-                if check is not None:
-                    check(chunk_key(path, (s // K,) + (0,) * (a.ndim - 1)), file.stat().st_size if file.is_file() else None)
-                cache = (s // K, read_shard(file, K))
+                key = chunk_key(path, (s // K,) + (0,) * (a.ndim - 1))
+                cache = (s // K, read_shard(shard_file(src_root, path, s // K, a.ndim), K, check, key))
             chunks[g - k * K] = cache[1][s % K]
         write_shard(out, chunks)
     return True
@@ -137,11 +139,15 @@ class SampleReader:
     ``tests/test_format.py`` (every sample equals zarr's).
     """
 
-    def __init__(self, arr: Any, check: Any = None, check_size: Any = None) -> None:
-        """``check(key, nbytes)`` judges a shard file read whole or found missing and
-        ``check_size(key)`` one read in part (the store's manifest checks)."""
+    def __init__(self, arr: Any, check: Any = None, check_size: Any = None, check_index: Any = None, whole_below: int = 0) -> None:
+        """``check(key, bytes or None)`` judges a shard file read whole or found missing,
+        ``check_size(key)`` one read in part and ``check_index(key, index bytes)`` its index
+        (the store's manifest checks: an index from another shard or write ties no inner
+        chunk to its place). A shard file of at most ``whole_below`` bytes is read whole on
+        every read, and judged by ``check``: small shards hold inner chunks of one size,
+        whose indexes are alike."""
         self.arr = arr
-        self.check, self.check_size = check, check_size
+        self.check, self.check_size, self.check_index, self.whole_below = check, check_size, check_index, whole_below
         layout = sample_layout(arr)
         root = getattr(arr.store, "root", None)
         self.fast = layout is not None and root is not None and chunks_like_gtgen(layout, arr.dtype)
@@ -149,28 +155,51 @@ class SampleReader:
             self.root, self.path, self.ndim = Path(root), arr.path, arr.ndim
             self.n = samples_per_shard(layout)
             self.shape, self.dtype, self.fill = tuple(arr.shape[1:]), np.dtype(arr.dtype), arr.fill_value
-            self._index: dict[int, np.ndarray | None] = {}
+            self._index: dict[int, np.ndarray | None] = {}  # the index entries of each large shard read so far
+            self._small: set[int] = set()
 
-    def _entries(self, s: int) -> np.ndarray | None:
-        if s not in self._index:
-            file = shard_file(self.root, self.path, s, self.ndim)
-            key = chunk_key(self.path, (s,) + (0,) * (self.ndim - 1))
-            if not file.is_file():
+    def _entries(self, index: bytes, file: Path) -> np.ndarray:
+        import google_crc32c
+
+        if len(index) != 16 * self.n + 4 or google_crc32c.value(index[:-4]) != int.from_bytes(index[-4:], "little"):
+            raise ValueError(f"shard '{file}' has a bad index (expected {self.n} inner chunks)")
+        return np.frombuffer(index[:-4], "<u8").reshape(self.n, 2)
+
+    def _chunk(self, s: int, i: int) -> bytes | None:
+        """Return inner chunk ``i`` of shard ``s`` as stored (None: empty)."""
+        file = shard_file(self.root, self.path, s, self.ndim)
+        key = chunk_key(self.path, (s,) + (0,) * (self.ndim - 1))
+        if s not in self._index and s not in self._small:
+            size = file.stat().st_size if file.is_file() else None
+            if size is None:
                 if self.check is not None:
                     self.check(key, None)
                 self._index[s] = None
+            elif size <= self.whole_below:
+                self._small.add(s)
             else:
                 if self.check_size is not None:
                     self.check_size(key)
-                import google_crc32c
-
                 with open(file, "rb") as f:
                     f.seek(-(16 * self.n + 4), 2)
                     index = f.read()
-                if google_crc32c.value(index[:-4]) != int.from_bytes(index[-4:], "little"):
-                    raise ValueError(f"shard '{file}' has a bad index (expected {self.n} inner chunks)")
-                self._index[s] = np.frombuffer(index[:-4], "<u8").reshape(self.n, 2)
-        return self._index[s]
+                if self.check_index is not None:
+                    self.check_index(key, index)
+                self._index[s] = self._entries(index, file)
+        if s in self._small:
+            data = file.read_bytes() if file.is_file() else None
+            if self.check is not None:
+                self.check(key, data)
+            if data is None:
+                return None
+            o, m = self._entries(data[-(16 * self.n + 4):], file)[i]
+            return None if o == _EMPTY else data[int(o) : int(o) + int(m)]
+        entries = self._index[s]
+        if entries is None or entries[i, 0] == _EMPTY:
+            return None
+        with open(file, "rb") as f:
+            f.seek(int(entries[i, 0]))
+            return f.read(int(entries[i, 1]))
 
     def __getitem__(self, k: int) -> np.ndarray:
         if not self.fast:
@@ -178,10 +207,4 @@ class SampleReader:
         from gtgen.storage.chunks import Encoded
 
         s, i = divmod(int(k), self.n)
-        entries = self._entries(s)
-        data = None
-        if entries is not None and entries[i, 0] != _EMPTY:
-            with open(shard_file(self.root, self.path, s, self.ndim), "rb") as f:
-                f.seek(int(entries[i, 0]))
-                data = f.read(int(entries[i, 1]))
-        return Encoded(data, self.dtype, (1, *self.shape), self.fill).decode()[0]
+        return Encoded(self._chunk(s, i), self.dtype, (1, *self.shape), self.fill).decode()[0]

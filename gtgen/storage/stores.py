@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -27,9 +28,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import GtgenError, StoreError
-from gtgen.runtime.output import partial_path
+from gtgen.runtime.output import partials
 from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
-from gtgen.storage.integrity import MANIFEST, METADATA, DamagedStoreError, Manifest, Where, rows_text, write_manifest
+from gtgen.storage.integrity import (
+    MANIFEST,
+    METADATA,
+    SMALL_FILE,
+    DamagedStoreError,
+    Manifest,
+    Verdict,
+    Where,
+    rows_text,
+    write_manifest,
+)
 from gtgen.storage.schema import StoreFormat
 from gtgen.storage.shards import SampleReader
 from gtgen.storage.specs import ArraySpec, dimension_names
@@ -47,14 +58,16 @@ def store_attrs(fmt: StoreFormat, **attrs: Any) -> dict[str, Any]:
 
 def _checked_store_class() -> type:
     import zarr
+    from zarr.abc.store import SuffixByteRequest
     from zarr.core.codec_pipeline import BatchedCodecPipeline
     from zarr.registry import fully_qualified_name, register_pipeline
     from zarr.storage import LocalStore
 
     class CheckedStore(LocalStore):
         """A read-only local zarr store whose every chunk read is checked against the
-        store's manifest: a listed chunk that is missing or of another size raises
-        DamagedStoreError instead of reading as fill."""
+        store's manifest: a listed chunk that is missing, of another size or (read whole)
+        of other bytes, or a shard index that is another, raises DamagedStoreError instead
+        of reading as fill or as another chunk's data."""
 
         def __init__(self, root: Path, manifest: Manifest) -> None:
             super().__init__(str(root), read_only=True)
@@ -62,10 +75,12 @@ def _checked_store_class() -> type:
 
         async def get(self, key: str, prototype: Any, byte_range: Any = None) -> Any:
             if byte_range is not None and key in self.manifest.files:
-                self.manifest.check_size(key)
+                self.manifest.check_part(key)
             buf = await super().get(key, prototype, byte_range)
             if byte_range is None:
-                self.manifest.check(key, None if buf is None else len(buf))
+                self.manifest.check(key, None if buf is None else buf.as_numpy_array())
+            elif buf is not None and isinstance(byte_range, SuffixByteRequest) and key in self.manifest.indexes:
+                self.manifest.check_index(key, buf.as_numpy_array())  # a shard's index, read before its inner chunks
             return buf
 
         def __reduce__(self) -> tuple:
@@ -126,7 +141,8 @@ def complete_attrs(path: Path, fmt: StoreFormat) -> dict[str, Any]:
 
     name = _name(fmt)
     if not path.exists():
-        hint = " (a run that did not finish left only a .partial store)" if partial_path(path).exists() else ""
+        left = partials(path)
+        hint = f" (a run that did not finish left only '{left[0].name}')" if left else ""
         raise StoreError(f"{name} store '{path}' does not exist{hint}; run '{fmt.made_by}' first")
     try:
         attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
@@ -166,6 +182,13 @@ class Store:
 
     def __reduce__(self) -> tuple:
         return (_reopen, (type(self), str(self.path)))
+
+    @cached_property
+    def identity(self) -> str:
+        """The store's identity (``integrity.identity``): results computed from it record it."""
+        from gtgen.storage.integrity import identity
+
+        return identity(self.path)
 
     def array(self, path: str) -> Any:
         """Return the zarr array ``path`` (checked reads)."""
@@ -272,7 +295,8 @@ class Rows:
         self.store, self.path = store, path
         check = store.manifest.check
         if getattr(arr, "shards", None):
-            self._shard: SampleReader | None = SampleReader(arr, check=check, check_size=store.manifest.check_size)
+            self._shard: SampleReader | None = SampleReader(arr, check=check, check_size=store.manifest.check_size,
+                                                            check_index=store.manifest.check_index, whole_below=SMALL_FILE)
             self._files: ChunkFiles | None = None
         else:
             self._shard, self._files = None, ChunkFiles(arr, check=check)
@@ -351,10 +375,10 @@ def _kind_by_manifest(path: Path) -> str | None:
     return best if overlap[best] else None
 
 
-def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
+def verify_store(path: Path) -> tuple[StoreFormat, Verdict]:
     """Check the store at ``path`` whole (any gtgen kind): every file the manifest lists,
-    every metadata checksum, every chunk decoded. Return (its format, files listed,
-    problems); raise StoreError if it is not a complete gtgen store at all."""
+    every metadata checksum, every chunk decoded. Return (its format, what was found);
+    raise StoreError if it is not a complete gtgen store at all."""
     from gtgen.storage.integrity import verify
     from gtgen.storage.schema import FORMATS
 
@@ -371,7 +395,6 @@ def verify_store(path: Path) -> tuple[StoreFormat, int, list[str]]:
         complete_attrs(Path(path), fmt)
     where = Where(_name(fmt), Path(path), fmt.made_by)
     try:
-        m = Manifest(Path(path), where)
-        return fmt, len(m.files) + len(m.metadata), verify(Path(path), where)
+        return fmt, verify(Path(path), where)
     except DamagedStoreError as err:
-        return fmt, 0, [err.what]
+        return fmt, Verdict([err.what], [], 0)

@@ -3,7 +3,8 @@ the weights so that a damaged file is an error rather than a model of garbage.
 
 The dict holds ``version`` (``CKPT_VERSION``), ``preset``, ``train`` and ``data_config``
 (the resolved configs), ``model`` (state dict), ``optim``, ``sched``, ``scaler``, ``step``,
-``history`` (the logged steps), ``best`` (the best validation so far) and ``model_sha256``.
+``history`` (the logged steps), ``best`` (the best validation so far), ``dataset`` (the
+record of the dataset it was trained on: ``train.runs``) and ``model_sha256``.
 """
 
 from __future__ import annotations

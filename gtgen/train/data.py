@@ -113,7 +113,7 @@ class ShardDataset(Dataset):
     """Samples of a dataset store as tensors, at the model sizes of a ``TrainConfig``.
 
     Works with a ``torch.utils.data.DataLoader`` and any number of workers (each opens the
-    store itself); stack samples with ``gtgen.train.trainer._collate`` or the default
+    store itself); stack samples with ``gtgen.train.network.collate`` or the default
     collate. ``ds[i]`` is a dict of tensors (n_m / n_s = ``tc.micro_size`` / ``short_size``,
     n_b the BEV grid's cells: ``model.bev_grid``; labels resampled by nearest cell centre;
     elevations relative to the base height at t). Only what the model takes is read: no

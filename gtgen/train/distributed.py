@@ -5,7 +5,8 @@ process group (NCCL on CUDA, gloo on CPU) and trains on ``cuda:LOCAL_RANK`` (or 
 with DDP; rank 0 alone takes the run folder's lock and writes checkpoints, logs and
 curves. Every rank reads the same config and, on ``--resume``, the same checkpoint, so
 seed, step and schedule agree; a setup error of rank 0 (a busy run folder, say) is sent to
-the others, which stop with the same one-line message.
+the others, which stop without repeating it (rank 0 prints the one line; then torchrun
+reports the failed processes in its own words).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gtgen.errors import ConfigError, TrainError
+from gtgen.errors import ConfigError, RankError, TrainError
 
 AMP_DTYPES = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
 
@@ -102,7 +103,8 @@ def process_group(procs: Processes, device: torch.device) -> Iterator[None]:
 
 
 def share_error(procs: Processes, message: str) -> None:
-    """Raise TrainError(``message`` of rank 0) on every rank when rank 0 has one."""
+    """Raise TrainError(``message`` of rank 0) on every rank when rank 0 has one (RankError
+    on the others: rank 0 alone reports it)."""
     if procs.world > 1:
         import torch.distributed as dist
 
@@ -110,7 +112,7 @@ def share_error(procs: Processes, message: str) -> None:
         dist.broadcast_object_list(box, src=0)
         message = box[0]
     if message:
-        raise TrainError(message)
+        raise TrainError(message) if procs.main else RankError(message)
 
 
 def mean_over(procs: Processes, values: torch.Tensor) -> torch.Tensor:

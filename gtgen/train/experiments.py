@@ -29,6 +29,7 @@ from gtgen.storage.dataset import DatasetStore
 from gtgen.train.checkpoint import load_checkpoint
 from gtgen.train.data import NO_SCANS
 from gtgen.train.presets import PRESETS, preset_overrides
+from gtgen.train.runs import METRICS, dataset_record, describe, recorded_dataset, same_dataset
 from gtgen.train.trainer import evaluate, mean_and_spread, train
 
 # steps of every run per preset unless --steps. The tiny preset's 15 runs of one seed cost
@@ -243,12 +244,13 @@ class _Plan:
 
 def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int = 1, steps: int | None = None,
                     tables: tuple[str, ...] = TABLES, config: Path | None = None, device: str | None = None,
-                    progress: Callable[[str], None] | None = None) -> ExperimentsResult:
+                    progress: Callable[[str], None] | None = None, overwrite: bool = False) -> ExperimentsResult:
     """Train and evaluate every run of ``tables`` for ``seeds`` seeds (train.seed, +1, ...)
     into ``out``, and write ``experiments.json`` and ``experiments.md`` there. ``steps``
     overrides the steps of every run (default ``DEFAULT_STEPS`` or the preset's);
     ``config`` is a partial YAML under every run's own switches (its train.steps, if any,
-    counts as ``steps``). ``progress`` is told in one line what each run is doing."""
+    counts as ``steps``). ``progress`` is told in one line what each run is doing. A file of
+    the user's where an output goes is replaced only with ``overwrite``."""
     if seeds < 1:
         raise ConfigError(f"--seeds {seeds}: expected at least 1 seed")
     if steps is not None and steps < 1:
@@ -256,6 +258,10 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
     user = read_yaml(config) if config is not None else {}
     base = load_config(None, preset_overrides(preset), user)
     n_steps = steps or (user.get("train") or {}).get("steps") or DEFAULT_STEPS.get(preset, PRESETS[preset].train["steps"])
+    if out.exists() and not out.is_dir():
+        raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
+    for path in (out / "experiments.json", out / "experiments.md"):  # before an hour of training, not after
+        check_replace(path, overwrite)
     store = DatasetStore(dataset)
     split, notes = _eval_split(store)
     plan = _plan(store.has_scans, tables, bool(store.cameras))
@@ -265,20 +271,38 @@ def run_experiments(dataset: Path, out: Path, preset: str = "tiny", seeds: int =
         notes.append(f"skipped {', '.join(plan.no_cameras)}: the dataset holds no camera images (the other rows train without "
                      "their camera input)")
     res = ExperimentsResult(out, out / "experiments.json", out / "experiments.md", split, notes, [])
-    if out.exists() and not out.is_dir():
-        raise TrainError(f"experiments folder '{out}' is a file; choose another -o")
-    for path in (res.json_path, res.markdown_path):  # before an hour of training, not after
-        check_replace(path)
     with output_folder(out), lock(out):
-        evals = _train_and_evaluate(dataset, out, plan, base, n_steps, seeds, split, device, progress, res)
+        _check_dataset(out, store)
+        evals = _train_and_evaluate(dataset, store.identity, out, plan, base, n_steps, seeds, split, device, progress, res, overwrite)
         res.tables = [_fill(t, {name: mean_and_spread(evs) for name, evs in evals.items()}, plan, seeds) for t in plan.tables]
-        summary = {"dataset": str(dataset), "split": split, "preset": preset, "steps": n_steps, "seeds": seeds, "notes": notes,
+        summary = {"dataset": str(dataset), "dataset_identity": store.identity, "split": split, "preset": preset, "steps": n_steps, "seeds": seeds, "notes": notes,
                    "runs": {name: {"train": plan.runs[name].train, "folders": [str(_folder(out, name, base.train.seed + k))
                                                                                for k in range(seeds)]} for name in evals},
                    "train_s": res.train_s, "tables": res.tables}
-        write_json(res.json_path, summary, indent=1)
-        write_atomic(res.markdown_path, markdown(res.tables, summary))
+        write_json(res.json_path, summary, overwrite, indent=1)
+        write_atomic(res.markdown_path, markdown(res.tables, summary), overwrite)
     return res
+
+
+def _check_dataset(out: Path, store: DatasetStore) -> None:
+    """Raise TrainError when the experiments folder ``out`` holds results of another dataset
+    than ``store`` (its tables, or any run): they are never reused, nor mixed with this
+    dataset's."""
+    try:
+        doc = json.loads((out / "experiments.json").read_text())
+        found = [(out / "experiments.json", {"path": doc.get("dataset"), "identity": doc.get("dataset_identity")}
+                  if doc.get("dataset_identity") else None)]
+    except (OSError, ValueError, AttributeError):
+        found = []
+    runs = out / "runs"
+    if runs.is_dir():
+        found += [(f, recorded_dataset(f)) for f in sorted(runs.iterdir())
+                  if f.is_dir() and not f.is_symlink() and ((f / "ckpt.pt").is_file() or (f / METRICS).is_file())]
+    for where, rec in found:
+        if not same_dataset(rec, store):
+            raise TrainError(f"experiments folder '{out}' holds results of {describe(rec)} ('{where}'), not of "
+                             f"{describe(dataset_record(store))}; write these experiments to another -o folder, or remove "
+                             f"'{out}' to run them anew on this dataset")
 
 
 def _plan(scans: bool, numbers: tuple[str, ...], cameras: bool = True) -> _Plan:
@@ -303,8 +327,9 @@ def _folder(out: Path, run: str, seed: int) -> Path:
     return out / "runs" / f"{run}-seed{seed}"
 
 
-def _train_and_evaluate(dataset: Path, out: Path, plan: _Plan, base: GtgenConfig, steps: int, seeds: int, split: str,
-                        device: str | None, progress: Callable[[str], None] | None, res: ExperimentsResult) -> dict[str, list[dict]]:
+def _train_and_evaluate(dataset: Path, identity: str, out: Path, plan: _Plan, base: GtgenConfig, steps: int, seeds: int, split: str,
+                        device: str | None, progress: Callable[[str], None] | None, res: ExperimentsResult,
+                        overwrite: bool = False) -> dict[str, list[dict]]:
     """Return the evaluations of every needed run per seed, training what is not done;
     record in ``res`` what was trained and what was found done. Every run of one seed comes
     before the next seed, so a session cut short holds whole tables of the seeds it finished."""
@@ -314,7 +339,7 @@ def _train_and_evaluate(dataset: Path, out: Path, plan: _Plan, base: GtgenConfig
         run = plan.runs[name]
         folder = _folder(out, name, seed)
         say = _teller(progress, f"[{i}/{len(todo)}] {name} (seed {seed}, {steps} steps; {_describe(run)})")
-        ev, trained = _run_one(dataset, folder, _run_config(base, run, steps, seed, device), split, name == "ours", say)
+        ev, trained = _run_one(dataset, identity, folder, _run_config(base, run, steps, seed, device), split, name == "ours", say, overwrite)
         (res.trained if trained else res.reused).append(folder.name)
         res.train_s += ev["train_s"]
         evals.setdefault(name, []).append(ev)
@@ -356,9 +381,11 @@ def _run_config(base: GtgenConfig, run: Run, steps: int, seed: int, device: str 
     return load_config(None, base.model_dump(mode="json"), {"train": layer})
 
 
-def _run_one(dataset: Path, folder: Path, cfg: GtgenConfig, split: str, baselines: bool, say: Callable[[str], None]) -> tuple[dict, bool]:
+def _run_one(dataset: Path, identity: str, folder: Path, cfg: GtgenConfig, split: str, baselines: bool,
+             say: Callable[[str], None], overwrite: bool = False) -> tuple[dict, bool]:
     """Return the evaluation of the run in ``folder`` (training or resuming it first when
-    short of its steps) and whether it trained now; ``say`` is told what it does."""
+    short of its steps; its evaluation on disk reused only when of the dataset of
+    ``identity``) and whether it trained now; ``say`` is told what it does."""
     tc = cfg.train
     done = folder / f"eval_{split}.json"
     _same_settings(folder, cfg)
@@ -366,18 +393,18 @@ def _run_one(dataset: Path, folder: Path, cfg: GtgenConfig, split: str, baseline
     trained = step < tc.steps
     if trained:
         say(f"resuming at step {step}" if step else "training")
-        train(dataset, folder, cfg, resume=step > 0)
+        train(dataset, folder, cfg, resume=step > 0, overwrite=overwrite)
     elif done.is_file():
         ev = json.loads(done.read_text())
         ev.pop("written_by", None)  # the file's signature, not a result: the fresh evaluations of other seeds have none
-        if ev.get("step") == tc.steps:
+        if ev.get("step") == tc.steps and (ev.get("dataset") or {}).get("identity") == identity:
             say("done")
             return ev, False
     say(f"evaluating on {split}")
     ev = evaluate(dataset, folder / "ckpt.pt", split=split, device=tc.device, baselines=baselines)
-    history = json.loads((folder / "metrics.json").read_text())["history"]
+    history = json.loads((folder / METRICS).read_text())["history"]
     ev["train_s"] = sum(h["data_s"] + h["step_s"] for h in history)
-    write_json(done, ev, indent=1)
+    write_json(done, ev, overwrite, indent=1)
     return ev, trained
 
 

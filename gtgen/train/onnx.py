@@ -121,15 +121,15 @@ def export_onnx(ckpt: Path, out: Path, overwrite: bool = False) -> OnnxResult:
     minutes, for this graph). The model's ``doc_string`` carries gtgen's signature (a later
     export may replace the file; anything else there only with ``overwrite``)."""
     from gtgen.train.checkpoint import load_checkpoint
+    from gtgen.train.evaluation import trained_model
     from gtgen.train.model import bev_grid
-    from gtgen.train.trainer import _trained_model
 
     state, tc, data_cfg = load_checkpoint(ckpt)
-    model = _trained_model(state, tc, data_cfg).requires_grad_(False)
+    model = trained_model(state, tc, data_cfg).requires_grad_(False)
     cameras = list(state.get("cameras", CAMERAS)) if tc.cameras else []
     args = example_inputs(tc, bev_grid(tc, data_cfg.grids)[1], cameras=len(cameras))
     net = Deployable(model).eval()
-    with atomic_output(out, overwrite) as tmp, torch.no_grad(), warnings.catch_warnings():
+    with atomic_output(out, overwrite, file=True) as tmp, torch.no_grad(), warnings.catch_warnings():
         # the tracer warns of every Python branch on a shape: the graph is for these shapes
         warnings.simplefilter("ignore", torch.jit.TracerWarning)
         torch.onnx.export(net, args, str(tmp), dynamo=False, opset_version=OPSET, input_names=list(net.inputs),

@@ -19,6 +19,12 @@ class Preset:
 
     doc: str
     train: dict[str, Any]
+    # (constant, per sample) [GiB]: the peak RSS of one float32 training step on the CPU at
+    # the preset's sizes is about constant + per sample x batch (gtgen/train/memory.py).
+    # Measured with bench/train.py's whole-step script (PAPER_STEP, the preset named in it)
+    # at two batches, 2026-12-05: paper 4.96 GiB at batch 1, 9.33 at batch 2 (batch 6 was
+    # killed by the kernel at 21.5 GB); tiny 0.63 GiB at batch 2, 2.29 at batch 16
+    memory_gib: tuple[float, float] | None = None
 
 
 PRESETS: dict[str, Preset] = {
@@ -31,6 +37,7 @@ PRESETS: dict[str, Preset] = {
              depth_step_m=4.0, image_channels=16, pillar_channels=16, max_points_per_pillar=16, decoder_channels=24,
              image_backbone="small_cnn", lr=0.002, steps=1000, batch_size=2, ckpt_every=250, val_every=250,
              val_max_samples=48, workers=0),
+        memory_gib=(0.39, 0.119),
     ),
     "paper": Preset(
         "The paper's network and sizes (Sec. III-D): EfficientNet-B0 (ImageNet weights from a local file:\n"
@@ -43,6 +50,7 @@ PRESETS: dict[str, Preset] = {
              depth_step_m=0.8, image_channels=80, pillar_channels=256, max_points_per_pillar=16,
              max_pillars_train=32000, max_pillars_test=64000, decoder_channels=88, image_backbone="efficientnet_b0",
              fpn_channels=128, lr=0.0005, steps=16000, batch_size=6, ckpt_every=500, val_every=500, workers=4),
+        memory_gib=(0.60, 4.37),
     ),
 }
 

@@ -1,9 +1,10 @@
-"""``gtgen train`` / ``gtgen eval``: the M&M-lite trainer and the paper's tables.
+"""``gtgen train``: the M&M-lite trainer (the paper's tables: ``gtgen.train.evaluation``).
 
 ``train`` runs on the configured device and precision, in one process or under torchrun
 (DDP, ``gtgen.train.distributed``); the sample order (``gtgen.train.sampler``), the mirror
 draws, the pillar draws and the model's own randomness all depend on the seed and the step
-only, so a resumed run continues exactly where an uninterrupted one would be.
+only, so a resumed run continues exactly where an uninterrupted one would be. A run folder
+records the dataset it was trained on, and is resumed only on it (``gtgen.train.runs``).
 """
 
 from __future__ import annotations
@@ -21,38 +22,37 @@ import torch
 from torch.utils.data import DataLoader
 
 from gtgen import codes
-from gtgen.config import CAMERAS, GtgenConfig, TrainConfig, save_config
-from gtgen.errors import ConfigError, GtgenError, TrainError
-from gtgen.grids import nearest_filled
-from gtgen.runtime.output import check_replace, lock, output_folder, owned, remove, write_json
+from gtgen.config import GtgenConfig, TrainConfig, save_config
+from gtgen.errors import ConfigError, GtgenError, RankError, TrainError
+from gtgen.runtime.output import check_replace, lock, output_folder, owned, point_link, remove, write_json
 from gtgen.runtime.progress import track
 from gtgen.storage.dataset import DatasetStore
 from gtgen.train import distributed as D
 from gtgen.train.augment import mirror
 from gtgen.train.checkpoint import load_checkpoint, save_checkpoint
-from gtgen.train.data import ShardDataset, camera_mismatch, for_dataset
+from gtgen.train.data import ShardDataset, for_dataset
+from gtgen.train.evaluation import (  # EVAL_ROWS and the evaluations re-exported: the CLI, scripts and users import them here
+    BEST_METRIC,
+    EVAL_ROWS,  # noqa: F401
+    evaluate,  # noqa: F401
+    evaluate_seeds,  # noqa: F401
+    mean_and_spread,  # noqa: F401
+    predict_sample,  # noqa: F401
+    run_eval,
+)
 from gtgen.train.loss import total_loss
-from gtgen.train.metrics import Consistency, ElevationMAE, RiskMetrics
-from gtgen.train.model import MMLite, bev_grid
-from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported: the CLI and users import it here)
+from gtgen.train.memory import check_memory
+from gtgen.train.model import MMLite
+from gtgen.train.network import build_model, parameter_counts, to_device  # build_model re-exported too
+from gtgen.train.network import collate as _collate
+from gtgen.train.presets import preset_overrides  # noqa: F401  (re-exported)
+from gtgen.train.runs import METRICS, check_resume, dataset_record
 from gtgen.train.sampler import StepBatchSampler
 
 log = logging.getLogger(__name__)
 
-# the eval's elevation rows (JSON keys under "elevation"/<range>), in table order
-EVAL_ROWS = {
-    "model": "M&M-lite",
-    "model_on_xracer_cells": "M&M-lite on X-Racer's cells",
-    "model_on_raw_cells": "M&M-lite on the raw cells",
-    "xracer": "X-Racer at t",
-    "raw": "raw elevation (min z)",
-    "raw_nearest": "raw min z, nearest-filled",
-}
-# the validation metric best.pt is chosen by (lower is better): the mean of the micro and
-# short elevation MAE (of the ranges the model predicts) over all labelled cells of the val split [m]
-BEST_METRIC = "total_mae_m"
 # the files a run writes in its folder (beside tb/, where TensorBoard only adds event files)
-RUN_FILES = ("gtgen-config.yaml", "ckpt.pt", "best.pt", "metrics.json", "train.csv", "val.csv")
+RUN_FILES = ("gtgen-config.yaml", "ckpt.pt", "best.pt", METRICS, "train.csv", "val.csv")
 CONFIG_FILE = RUN_FILES[0]
 # the random streams of a step (with the seed and the step): the global batch's mirror and
 # pillar draws (the same on every process), and the model's own (stochastic depth), per process
@@ -67,59 +67,6 @@ def seed_everything(seed: int) -> None:
 
 def _step_seed(seed: int, step: int, stream: int, rank: int = 0) -> int:
     return int(np.random.SeedSequence([seed, step, stream, rank]).generate_state(1)[0])
-
-
-def _collate(items: list[dict]) -> dict:
-    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
-
-
-def _to(batch: dict, device: torch.device) -> dict:
-    # non-blocking from pinned memory on CUDA: the copy overlaps the previous step's kernels
-    return {k: v.to(device, non_blocking=device.type == "cuda") for k, v in batch.items()}
-
-
-def build_model(tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
-    """Return a fresh model; loads ``backbone_weights`` into the EfficientNet-B0 if given.
-    Raises ConfigError for grids the model cannot tile: its micro maps and their inputs come
-    from the centre half of the short grid, and its encoder halves its BEV grid three times."""
-    gm, gs = data_cfg.grids.micro, data_cfg.grids.short
-    if "micro" in tc.predicted_ranges and abs(2 * gm.length_m - gs.length_m) > 1e-6:
-        raise ConfigError(f"grids.micro spans {gm.length_m:g} m and grids.short {gs.length_m:g} m: M&M-lite takes the micro maps and "
-                          f"their inputs from the centre half of the short grid, so the micro grid must span {gs.length_m / 2:g} m")
-    bev_m, bev_cells = bev_grid(tc, data_cfg.grids)
-    if bev_cells < 16 or tc.micro_size < 8:
-        raise ConfigError(f"train.short_size {tc.short_size} / micro_size {tc.micro_size}: the model needs at least 16 BEV cells "
-                          f"(the short size, or half of it for train.ranges: micro) and 8 micro cells")
-    if tc.backbone_weights and (tc.image_backbone != "efficientnet_b0" or not tc.cameras):
-        raise ConfigError(f"train.backbone_weights loads EfficientNet-B0 weights, but train.image_backbone is {tc.image_backbone!r}"
-                          f"{'' if tc.cameras else ' and train.cameras is off'}; set image_backbone: efficientnet_b0 with cameras on "
-                          "(the paper preset) or drop backbone_weights")
-    model = MMLite(tc, bev_m, bev_cells)
-    if tc.backbone_weights:
-        from gtgen.train.backbones import load_backbone_weights
-
-        load_backbone_weights(model.lift.backbone.net, Path(tc.backbone_weights))
-    # channels-last weights: oneDNN's convolutions run about 20 % faster on the tiny preset's
-    # CPU training step (and it is the layout GPU tensor cores prefer)
-    return model.to(memory_format=torch.channels_last)
-
-
-def parameter_counts(model: MMLite) -> dict[str, int]:
-    """Return the model's parameters per block, in the paper's order (Sec. III-D)."""
-    blocks = {
-        "image backbone": ("lift.backbone.net.", *(f"lift.backbone.s{i}." for i in range(1, 5)), "lift.backbone.merge."),
-        "image FPN": ("lift.backbone.lateral.", "lift.backbone.smooth."),
-        "depth + feature head": ("lift.head.",),
-        "PointPillars": ("pillars.",),
-        "decoder, short (U-Net)": ("enc", "up", "short_"),
-        "decoder, micro": ("micro",),
-    }
-    out = dict.fromkeys(blocks, 0)
-    for name, p in model.named_parameters():
-        block = next(b for b, prefixes in blocks.items() if name.startswith(prefixes))
-        out[block] += p.numel()
-    out["total"] = sum(out.values())
-    return {k: v for k, v in out.items() if v or k == "total"}
 
 
 @dataclass
@@ -139,6 +86,7 @@ class TrainResult:
     peak_memory_mib: float | None = None
     best: dict | None = None
     parameters: dict[str, int] = field(default_factory=dict)
+    latest_note: str | None = None  # why runs/latest was left as it is (None: it points at this run)
 
 
 def _check_steps(max_steps: int | None) -> None:
@@ -160,6 +108,10 @@ def train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool = False, 
     cfg = cfg.model_copy(update={"train": tc})
     procs = D.torchrun_env()
     dev = D.resolve_device(tc.device, procs)
+    try:  # before any work: the kernel kills a run that does not fit
+        check_memory(tc, dev, D.resolve_precision(tc.precision, dev), procs.world)
+    except TrainError as err:  # every process finds the same: rank 0 reports it
+        raise (err if procs.main else RankError(str(err))) from None
     with D.process_group(procs, dev):
         return _train(dataset, run_dir, cfg, resume, max_steps, procs, dev, overwrite)
 
@@ -227,6 +179,11 @@ def _train(dataset: Path, run_dir: Path, cfg: GtgenConfig, resume: bool, max_ste
                 err = str(e)
         D.share_error(procs, err)
         state = load_checkpoint(ckpt_path, tc.preset)[0] if resume else None
+        if state is not None:
+            try:
+                check_resume(state, ds.store, run_dir)
+            except TrainError as err:  # every process finds the same: rank 0 reports it
+                raise (err if procs.main else RankError(str(err))) from None
         return _fit(ds, val, model, counts, cfg, run_dir, state, max_steps, procs, dev, precision, overwrite)
 
 
@@ -281,7 +238,7 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
             t0 = time.perf_counter()
             batch = next(it)
             t1 = time.perf_counter()
-            batch = _to(_augment(batch, tc, step, procs.rank, sampler.used), dev)
+            batch = to_device(_augment(batch, tc, step, procs.rank, sampler.used), dev)
             torch.manual_seed(_step_seed(tc.seed, step, _MODEL, procs.rank))
             with D.autocast(dev, precision):
                 pred = net(batch)
@@ -322,11 +279,11 @@ def _fit(ds: ShardDataset, val: ShardDataset | None, model: MMLite, counts: dict
                       data_wait_share=sum(waits) / max(sum(waits) + sum(busy), 1e-9), peak_memory_mib=peak,
                       best=best if best["step"] is not None else None, parameters=counts)
     if procs.main:
-        write_json(run_dir / "metrics.json", {
-            "history": history, "seconds": secs, "device": str(dev), "precision": precision, "processes": procs.world,
+        write_json(run_dir / METRICS, {
+            "dataset": dataset_record(ds.store), "history": history, "seconds": secs, "device": str(dev), "precision": precision, "processes": procs.world,
             "samples_per_s": res.samples_per_s, "data_wait_share": res.data_wait_share, "peak_memory_mib": peak,
             "best": res.best, "best_metric": BEST_METRIC, "parameters": counts}, overwrite, indent=1)
-        _link_latest(run_dir)
+        res.latest_note = _link_latest(run_dir)
     return res
 
 
@@ -360,7 +317,7 @@ def _payload(model: MMLite, opt, sched, scaler, step: int, history: list, best: 
     tc = cfg.train
     return {"preset": tc.preset, "train": tc.model_dump(mode="json"), "data_config": ds.data_cfg.model_dump(mode="json"), "cameras": ds.store.cameras,
             "model": model.state_dict(), "optim": opt.state_dict(), "sched": sched.state_dict(), "scaler": scaler.state_dict(),
-            "step": step, "history": history, "best": best}
+            "step": step, "history": history, "best": best, "dataset": dataset_record(ds.store)}
 
 
 def _augment(batch: dict, tc: TrainConfig, step: int, rank: int, global_batch: int) -> dict:
@@ -387,7 +344,7 @@ def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.devi
     return the best so far."""
     model.eval()
     try:
-        res = _run_eval(model, val, tc, dev, precision, baselines=False)
+        res = run_eval(model, val, tc, dev, precision, baselines=False)
     finally:
         model.train()
     row = {"loss": res["loss"], BEST_METRIC: res[BEST_METRIC]}
@@ -407,165 +364,9 @@ def _validate(model: MMLite, val: ShardDataset, tc: TrainConfig, dev: torch.devi
     return best
 
 
-def _run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.device, precision: str, baselines: bool = True,
-              progress: str | None = None) -> dict:
-    """Return the paper's tables of ``model`` (in eval mode) on ``ds``, batched on ``dev``, for
-    the ranges it predicts (the consistency only with both); with ``baselines`` also the
-    X-Racer and raw rows; plus the loss."""
-    clip = tc.elevation_clip_m
-    ranges = tc.predicted_ranges
-    rows = EVAL_ROWS if baselines else {"model": EVAL_ROWS["model"]}
-    acc = {r: {m: ElevationMAE() for m in rows} for r in ranges}
-    risk = {r: {m: RiskMetrics(tc.fatal_risk) for m in (("model", "xracer") if baselines else ("model",))} for r in ranges}
-    cons = Consistency()
-    loss_sum, n = 0.0, 0
-    loader = DataLoader(ds, batch_size=max(1, tc.batch_size), shuffle=False, num_workers=tc.workers, collate_fn=_collate,
-                        pin_memory=dev.type == "cuda")
-    batches = track(loader, progress) if progress else loader
-    with torch.no_grad():
-        for cpu in batches:
-            batch = _to(cpu, dev)
-            with D.autocast(dev, precision):
-                out = model(batch)
-            out = {k: v.float() for k, v in out.items()}
-            loss, _ = total_loss(out, batch, tc)
-            B = len(cpu["index"])
-            loss_sum += float(loss) * B
-            n += B
-            pred = {k: v.cpu().numpy() for k, v in out.items()}
-            for r in ranges:
-                lab = cpu[f"{r}/elevation"].numpy() * clip
-                reg = cpu[f"{r}/region"].numpy()
-                pe = pred[f"{r}/elevation"] * clip
-                acc[r]["model"].add(pe, lab, reg)
-                risk[r]["model"].add(pred[f"{r}/risk"], cpu[f"{r}/risk"].numpy())
-                if not baselines:
-                    continue
-                raw = cpu[f"{r}/raw_elevation"].numpy()
-                xr = cpu[f"{r}/xr_elevation"].numpy()
-                # like for like with the stack and with the raw grid: only where each has a value
-                acc[r]["model_on_xracer_cells"].add(np.where(np.isfinite(xr), pe, np.nan), lab, reg)
-                acc[r]["model_on_raw_cells"].add(np.where(np.isfinite(raw), pe, np.nan), lab, reg)
-                acc[r]["xracer"].add(xr, lab, reg)
-                acc[r]["raw"].add(raw, lab, reg)
-                acc[r]["raw_nearest"].add(np.stack([nearest_filled(x) for x in raw]), lab, reg)
-                risk[r]["xracer"].add(cpu[f"{r}/xr_risk"].numpy(), cpu[f"{r}/risk"].numpy())
-            if len(ranges) == 2:
-                cons.add(pred["micro/elevation"] * clip, pred["short/elevation"] * clip)
-    elevation = {r: {m: a.table() for m, a in acc[r].items()} for r in acc}
-    totals = [elevation[r]["model"]["total"]["mae_m"] for r in ranges]
-    return {"elevation": elevation, "risk": {r: {m: v.table() for m, v in risk[r].items()} for r in risk},
-            "consistency_mae_m": cons.value(), "loss": loss_sum / max(n, 1),
-            BEST_METRIC: float(np.mean(totals)) if all(t is not None for t in totals) else float("nan")}
+def _link_latest(run_dir: Path) -> str | None:
+    """Point ``runs/latest`` at ``run_dir`` unless something of the user's is there (a
+    folder, a file, a symlink to anything but a run folder gtgen wrote); return why not."""
+    return point_link(run_dir.parent / "latest", run_dir, lambda p: owned(p / CONFIG_FILE))
 
 
-def _link_latest(run_dir: Path) -> None:
-    """Point ``runs/latest`` at ``run_dir`` (unless a real folder of that name is there)."""
-    latest = run_dir.parent / "latest"
-    if latest.is_symlink() or not latest.exists():
-        if latest.is_symlink():
-            latest.unlink()
-        latest.symlink_to(run_dir.name)
-
-
-def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | None = "val", device: str | None = None,
-             baselines: bool = True) -> dict:
-    """Return the paper's tables for the checkpoint on ``split`` of ``dataset`` (None: all),
-    computed on ``device`` (default ``auto``: CUDA when present), batched, with the
-    checkpoint's loader workers and precision: the rows of the ranges the model predicts
-    (``ranges``), with the X-Racer and raw rows unless ``baselines`` is off."""
-    state, tc, data_cfg = load_checkpoint(ckpt)
-    if preset is not None and preset != state["preset"]:
-        raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
-    ds = _eval_dataset(dataset, ckpt, state, tc, split)
-    used = split or "all"
-    if len(ds) == 0:
-        raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.store.n_samples} samples are all in other splits); "
-                         "evaluate with --split all, or build more drives")
-    if abs(ds.data_cfg.grids.short.length_m - data_cfg.grids.short.length_m) > 1e-6:
-        raise TrainError(f"checkpoint was trained on short grids of {data_cfg.grids.short.length_m} m; the dataset has {ds.data_cfg.grids.short.length_m} m")
-    dev = D.resolve_device(device or "auto")
-    model = _trained_model(state, tc, data_cfg).to(dev)
-    t0 = time.perf_counter()
-    res = _run_eval(model, ds, tc, dev, D.resolve_precision(tc.precision, dev), baselines, progress="eval: batches")
-    secs = time.perf_counter() - t0
-    return {
-        "split": used, "samples": len(ds), "preset": state["preset"], "step": state["step"], "ranges": list(tc.predicted_ranges),
-        "elevation": res["elevation"], "risk": res["risk"], "consistency_mae_m": res["consistency_mae_m"],
-        "grid": {"micro_size": tc.micro_size, "short_size": tc.short_size},
-        "device": str(dev), "seconds_per_sample": secs / len(ds),
-    }
-
-
-def _eval_dataset(dataset: Path, ckpt: Path, state: dict, tc: TrainConfig, split: str | None) -> ShardDataset:
-    """Return the samples of ``split`` of ``dataset`` as the checkpoint's model reads them;
-    raise TrainError when its image branch was trained on other cameras than the dataset's."""
-    if tc.cameras:
-        err = camera_mismatch(list(state.get("cameras", CAMERAS)), DatasetStore(dataset).cameras, ckpt, dataset)
-        if err is not None:
-            raise err
-    return ShardDataset(dataset, tc, split=split)
-
-
-def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val", device: str | None = None) -> dict:
-    """Evaluate each checkpoint (one per training seed) and return the first's layout with
-    every metric replaced by its mean over the checkpoints, plus ``spread``: the same
-    layout with the standard deviations (None where any checkpoint has none), and ``runs``:
-    each checkpoint's own result."""
-    runs = [evaluate(dataset, c, None, split, device) for c in ckpts]
-    if len({r["preset"] for r in runs}) > 1:
-        raise TrainError(f"checkpoints of several presets: {sorted({r['preset'] for r in runs})}; evaluate one preset's seeds together")
-    if len({tuple(r["ranges"]) for r in runs}) > 1:
-        raise TrainError(f"checkpoints predicting other ranges: {sorted({'+'.join(r['ranges']) for r in runs})}; evaluate one model's seeds together")
-    out = mean_and_spread(runs)
-    out["runs"] = [{"ckpt": str(c), **r} for c, r in zip(ckpts, runs)]
-    return out
-
-
-def mean_and_spread(results: list[dict]) -> dict:
-    """Return ``results[0]``'s layout with every metric replaced by its mean over the results,
-    plus ``spread``: the same layout with the standard deviations (0 for one result; None
-    where any result has none)."""
-    out = _reduce(results, np.mean)
-    out["spread"] = _reduce(results, lambda v: np.std(v, ddof=1) if len(v) > 1 else 0.0)
-    return out
-
-
-def _reduce(results: list, fn):
-    """Return ``results[0]``'s nested layout with each numeric leaf reduced over the results."""
-    first = results[0]
-    if isinstance(first, dict):
-        return {k: _reduce([r[k] for r in results], fn) for k in first}
-    if (isinstance(first, (int, float)) and not isinstance(first, bool)) or first is None:
-        if any(r is None for r in results):
-            return None
-        v = float(fn(np.array(results, np.float64)))
-        return int(v) if all(isinstance(r, int) for r in results) and v.is_integer() else v  # counts stay integers
-    return first
-
-
-def _trained_model(state: dict, tc: TrainConfig, data_cfg: GtgenConfig) -> MMLite:
-    """Return the checkpoint's model in eval mode. Raises TrainError (one line) when its
-    weights do not fit the model its config describes."""
-    model = build_model(tc.model_copy(update={"backbone_weights": None}), data_cfg)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as err:  # torch lists every mismatch, one per line after a heading
-        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-        raise TrainError(f"checkpoint's weights do not fit its model ({lines[-1] if lines else err}); retrain with this version") from err
-    return model.eval()
-
-
-def predict_sample(dataset: Path, ckpt: Path, index: int, device: str | None = None) -> dict[str, np.ndarray]:
-    """Return the model's maps for dataset sample ``index`` (elevation in metres), computed
-    on ``device`` (default ``auto``)."""
-    state, tc, data_cfg = load_checkpoint(ckpt)
-    dev = D.resolve_device(device or "auto")
-    model = _trained_model(state, tc, data_cfg).to(dev)
-    ds = _eval_dataset(dataset, ckpt, state, tc, None)
-    pos = np.nonzero(ds.indices == index)[0]
-    if not len(pos):
-        raise TrainError(f"sample {index} is not in the dataset (0..{ds.store.n_samples - 1})")
-    with torch.no_grad(), D.autocast(dev, D.resolve_precision(tc.precision, dev)):
-        pred = model(_to(_collate([ds[int(pos[0])]]), dev))
-    return {k: v[0].float().cpu().numpy() * (tc.elevation_clip_m if k.endswith("elevation") else 1.0) for k, v in pred.items()}
