@@ -74,13 +74,8 @@ def test_cli_reference_holds_every_commands_help():
 
 
 def _anchors(page: Path) -> set[str]:
-    """Return the ids of a page's headings, as MkDocs' toc makes them (or as `{ #id }` sets)."""
-    ids = set()
-    for line in page.read_text().splitlines():
-        m = re.match(r"#{1,6} (.*?)(?:\s*\{ *#([\w-]+) *\})?\s*$", line)
-        if m:
-            ids |= {slugify(m.group(1), "-")} | ({m.group(2)} if m.group(2) else set())
-    return ids
+    """Return the ids of a page's headings, as MkDocs' toc (and GitHub) make them."""
+    return {slugify(m.group(1), "-") for m in re.finditer(r"^#{1,6} (.*?)\s*$", page.read_text(), re.M)}
 
 
 def test_readme_is_short_and_its_links_resolve():
