@@ -172,7 +172,7 @@ def main() -> None:
         shrink(work / "sample.png", "sample.png", 1100, drop_title=True)
         shrink(work / "sample.png", "sample_small.png", 720, drop_title=True)
         shrink(work / "report" / "qa_overview.png", "qa_overview.png", 900)
-        for name in ("qa_overview", "qa_track", "qa_label_error", "qa_rejection_signals"):
+        for name in ("qa_track", "qa_label_error", "qa_rejection_signals"):
             shrink(work / "adversity" / "report" / f"{name}.png", f"adversity_{name}.png", 900)
         shrink(next((work / "runs" / "latest").glob("pred_*.png")), "prediction.png", 1100, drop_title=True)
         region_masks(work, work / "regions.png")
@@ -181,7 +181,7 @@ def main() -> None:
         shrink(work / "curves.png", "curves.png", 900)
         mosaic = next((work / "qgis").glob("*/micro"))
         run(sys.executable, ROOT / "scripts" / "plot_export.py", mosaic, work / "drive" / "dem", "-o", work / "mosaic.png", cwd=work)
-        shrink(work / "mosaic.png", "mosaic.png", 1000)
+        shrink(work / "mosaic.png", "mosaic.png", 1000, drop_title=True)
         if a.hdl64.is_file():
             run(sys.executable, ROOT / "scripts" / "map_scan.py", a.hdl64, "--origin", "429.1", "-1226.2", "-3.1", "--sensor-height", "1.9",
                 "-o", work / "hdl64.png", cwd=work)
