@@ -91,7 +91,7 @@ def smoothed_min_z(raw: NDArray, size: int = 3) -> NDArray[np.float32]:
     """Return the min-z grid averaged over its valid cells in a ``size`` x ``size`` window,
     at the valid cells only (normalized convolution; NaN elsewhere). Voxel-map minima sit on
     a 0.4 m voxel lattice; averaging neighbours removes most of that quantisation on smooth
-    ground (README, "What the model needs")."""
+    ground (docs/training.md, "M&M-lite")."""
     from scipy.ndimage import uniform_filter
 
     ok = np.isfinite(raw)
@@ -123,8 +123,8 @@ def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
     at most ``max_sigma_cells`` cells of the level) and interpolated back bilinearly: every
     scale costs at most one filter of that width. The full-resolution fill
     (``max_sigma_cells=inf``) is the tests' oracle; the two differ only along the seams
-    where a cell's scale changes. Why this fill and not another: README, "What the model
-    needs"."""
+    where a cell's scale changes. Why this fill and not another: docs/training.md,
+    "M&M-lite"."""
     from scipy.ndimage import gaussian_filter
 
     ok = np.isfinite(grid)

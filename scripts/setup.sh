@@ -23,7 +23,7 @@ stamp=.venv/.gtgen-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   # The CPU build of torch; a GPU user installs their CUDA build into .venv before this
-  # script (see README), and this line then keeps it because it is already satisfied.
+  # script (see docs/getting-started.md), and this line then keeps it because it is already satisfied.
   .venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/python -m pip install -q "torch==2.13.0"
   .venv/bin/python -m pip install -q -e ".[dev]"
   touch "$stamp"

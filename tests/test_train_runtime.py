@@ -75,7 +75,7 @@ def test_torchrun_two_processes_train_like_one(dataset, tmp_path):
     torchrun = Path(sys.executable).parent / "torchrun"
     c = _config_file(tmp_path, batch_size=2)
     env = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
-    # the README's launch line, as written
+    # docs/training.md's launch line (Several GPUs), as written
     cmd = [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "gtgen", "train", str(dataset),
            "--steps", "2", "--run-dir", str(tmp_path / "runs" / "ddp"), "--config", str(c)]
     p = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=env)

@@ -94,7 +94,7 @@ def onnx(
     overwrite: bool = OverwriteOpt,
 ) -> None:
     """Write the trained network as one ONNX graph (opset 18, batch 1) for onnxruntime or
-    TensorRT: inputs, their layout and normalisation in the README ("Deployment") and in
+    TensorRT: inputs, their layout and normalisation in docs/training.md ("Deployment") and in
     gtgen/train/onnx.py.
 
     **Examples**
