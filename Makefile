@@ -19,7 +19,7 @@ test: setup
 # the docs group is installed only where it is missing; --strict fails on a broken link,
 # anchor or include, and on a reference page the code cannot generate
 docs: setup
-	$(BIN)/python -c "import mkdocs, material, mkdocstrings_handlers.python" 2>/dev/null || $(BIN)/python -m pip install -q -e ".[docs]"
+	$(BIN)/python -c "import mkdocs, material, mkdocstrings_handlers.python" 2>/dev/null || PIP_RETRIES=10 PIP_RESUME_RETRIES=20 $(BIN)/python -m pip install -q -e ".[docs]"
 	$(BIN)/mkdocs build --strict --site-dir site
 
 bench: setup

@@ -20,11 +20,24 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.gtgen-installed
+# PyPI over a flaky link: pip retries each connection and resumes a cut download, and the
+# whole install is tried three times before the script gives up (it installs only what is missing).
+export PIP_RETRIES=10 PIP_TIMEOUT=60
+pip_install() {
+  local n
+  for n in 1 2 3; do
+    .venv/bin/python -m pip install -q "$@" && return 0
+    echo "setup: pip install $* failed (try $n of 3)" >&2
+    sleep 5
+  done
+  return 1
+}
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  .venv/bin/python -m pip install -q --upgrade pip
+  pip_install --upgrade pip
+  export PIP_RESUME_RETRIES=20
   # The CPU build of torch; a GPU user installs their CUDA build into .venv before this
   # script (see docs/getting-started.md), and this line then keeps it because it is already satisfied.
-  .venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  .venv/bin/python -c "import torch" 2>/dev/null || pip_install "torch==2.13.0"
+  pip_install -e ".[dev]"
   touch "$stamp"
 fi
