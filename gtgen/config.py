@@ -498,7 +498,10 @@ def _world_layer(layer: dict[str, Any]) -> dict[str, Any]:
 
 
 def _format_validation(err: ValidationError) -> str:
-    first = err.errors()[0]
+    errors = err.errors()
+    # a misspelt key is also a missing one (topics.cameras.front: 'imag' and no 'image'):
+    # the unknown key is the one to name, with its nearest valid spelling
+    first = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
     parts = tuple(str(p) for p in first["loc"])
     loc = ".".join(parts) or "<root>"
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""

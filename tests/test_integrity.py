@@ -431,19 +431,30 @@ def test_drive_store_reads_are_checked_too(drive_store, tmp_path):
 
 # -- a kill -9 inside each stage, then the same command again --------------------------------
 
-def _kill_when(folder: Path, pattern: str, args: list, cwd: Path) -> None:
+def _kill_when(folder: Path, pattern: str, args: list, cwd: Path, hold: str | None = None) -> None:
     """Start ``gtgen ARGS``, SIGKILL it once something matching ``pattern`` (its partial
-    output or scratch) appears in ``folder``."""
+    output or scratch) appears in ``folder``. ``hold`` ("module.function") makes that
+    function of the run hang at its first call, for a stage too quick to catch mid-write
+    (the kill then lands while the function's caller holds its temporary output)."""
     import signal
     import sys
     import time
 
-    p = subprocess.Popen([sys.executable, "-m", "gtgen", *map(str, args)], cwd=cwd, stdout=subprocess.DEVNULL,
+    cmd = [sys.executable, "-m", "gtgen"]
+    if hold is not None:
+        mod, fn = hold.rsplit(".", 1)
+        cmd = [sys.executable, "-c",
+               f"import sys, time, {mod} as m\n"
+               f"m.{fn} = lambda *a, **k: time.sleep(600)\n"
+               "from gtgen.cli import main\nsys.argv[0] = 'gtgen'\nmain()"]
+    p = subprocess.Popen([*cmd, *map(str, args)], cwd=cwd, stdout=subprocess.DEVNULL,
                          stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
     while not list(folder.glob(pattern)) and p.poll() is None and time.time() < deadline:
         time.sleep(0.02)
     assert p.poll() is None, f"gtgen {args[0]} ended before it could be killed mid-write"
+    if hold is not None:
+        time.sleep(0.5)  # let it reach the held call
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
 
@@ -460,7 +471,11 @@ def test_a_stage_killed_then_run_again_gives_the_same_output(stage, drive_dir, d
         args, out, ref = ["dem-align", "-c", SMALL], ws / "dataset.zarr", dataset
     else:
         args, out, ref = ["export", "mcap", dataset, "-o", ws / "x.mcap"], ws / "x.mcap", None
-    _kill_when(ws, "*.partial", args, tmp_path)
+    # the export of the small dataset is over in an instant: it is held at its first sample
+    if stage == "export-mcap":
+        _kill_when(ws, "x.mcap.*", args, tmp_path, hold="gtgen.export.mcap._write_sample")
+    else:
+        _kill_when(ws, "*.partial", args, tmp_path)
     assert not out.exists()
     p = run_cli(*args, cwd=tmp_path)
     assert p.returncode == 0, p.stderr

@@ -33,7 +33,7 @@ def synth(
     gtgen synth drive                   # 60 s drive, ROS 2 MCAP + ROS 1 bag
     gtgen synth drive --seed 3 --duration 120 --format mcap
     gtgen synth drive --scan-rate 2     # fewer raw scans: a faster drive
-    gtgen synth drive --cameras 1       # a one-camera rig (front): extract it with --config drive/gtgen-config.yaml
+    gtgen synth drive --cameras 1       # a one-camera rig (front)
     ```
     """
     given = {"seed": seed, "duration_s": duration, "formats": format, "scan_rate_hz": scan_rate}
@@ -169,7 +169,7 @@ def dem_align(
     ```
     gtgen dem-align                     # gtgen_ws/ -> gtgen_ws/dataset.zarr
     gtgen dem-align --dem /data/usgs_1m/ -o datasets/paso.zarr
-    gtgen dem-align --no-dem            # a lidar-and-poses log: no GNSS, no DEM
+    gtgen dem-align --no-dem            # lidar and poses: no GNSS, no DEM
     ```
     """
     cfg = _no_dem(load(config), dem, no_dem)
