@@ -82,8 +82,9 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
                 cb.ax.tick_params(labelsize=7)
     t_ns, drive = ds.meta("t_ns"), ds.meta("drive")
     t, t0 = int(t_ns[index]), int(t_ns[drive == drive[index]].min())
-    lines = [f"{dataset.name} sample {index}:  t = {(t - t0) / 1e9:.2f} s after the drive's first sample ({_utc(t)}),  "
-             f"ICP fitness {ds.meta('icp_fitness')[index]:.3f}",
+    fit = float(ds.meta("icp_fitness")[index])
+    placed = f"ICP fitness {fit:.3f}" if np.isfinite(fit) else "no DEM placement (fused labels alone)"
+    lines = [f"{dataset.name} sample {index}:  t = {(t - t0) / 1e9:.2f} s after the drive's first sample ({_utc(t)}),  {placed}",
              "forward up; regions: orange observed past/current, purple observed future, blue unobserved (DEM), grey none"]
     # wrapped to the figure's width (about 0.6 em a character), so a long name or stamp never runs off its edges
     chars = int(fig.get_figwidth() * 72 / (0.6 * TITLE_PT))
