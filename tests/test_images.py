@@ -106,6 +106,17 @@ def test_the_rectifying_map_samples_the_raw_pixel_of_each_ideal_one_and_undistor
     np.testing.assert_allclose(out[v, u, 0], np.interp(want[:, 0], np.arange(SIZE[0]), ramp[0, :, 0].astype(float)), atol=0.51)
 
 
+@pytest.mark.parametrize(("model", "D"), LENSES)
+def test_the_remap_by_precomputed_taps_equals_the_bilinear_sampler_within_one_level(model, D):
+    """Remap's four gathers and weights against grids.bilinear per channel (its oracle):
+    the same image but for rounding at .5 (at most one level), black outside alike."""
+    m = rectify_remap(Lens.of(model, D), K_RAW, SIZE)
+    img = np.random.default_rng(4).integers(0, 256, (SIZE[1], SIZE[0], 3), dtype=np.uint8)
+    fast, naive = m(img).astype(int), m.naive(img).astype(int)
+    assert np.abs(fast - naive).max() <= 1 and (fast != naive).mean() < 1e-3
+    np.testing.assert_array_equal(fast.sum(-1) == 0, naive.sum(-1) == 0)
+
+
 def test_stored_size_keeps_the_aspect_and_never_upscales():
     assert stored_size((1920, 1200), (640, 396)) == (634, 396)
     assert stored_size((1280, 720), (640, 396)) == (640, 360)
