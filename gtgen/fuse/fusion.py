@@ -250,14 +250,14 @@ class _Sliding:
     def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, ...]:
         """Return (sum, count, risk, last stamp, ground sum, ground count) at lattice cells
         (I, J) for a window starting at ``a`` (the ground ones None under rule ``mean``)."""
-        isum, cnt, risk, rstamp, lstamp = self.atlas.gather(I, J, ("sum", "cnt", "risk", "rstamp", "lstamp"))
+        names = ("sum", "cnt", "risk", "rstamp", "lstamp") + (("gsum", "gcnt") if self.p.ground else ())
+        isum, cnt, risk, rstamp, lstamp, *ground = self.atlas.gather(I, J, names)  # one lookup of the cells' tiles
         ssum = isum / SUM_SCALE
         risk = np.where(rstamp >= a, risk, np.nan)
         lstamp = np.where(lstamp >= a, lstamp, -1)
         gsum = gcnt = None
-        if self.p.ground:
-            igsum, gcnt = self.atlas.gather(I, J, ("gsum", "gcnt"))
-            gsum = igsum / SUM_SCALE
+        if ground:
+            gsum, gcnt = ground[0] / SUM_SCALE, ground[1]
         return ssum, cnt, risk, lstamp, gsum, gcnt
 
 

@@ -114,9 +114,9 @@ def gather_map(m: LatticeMap, I: NDArray, J: NDArray, layer: NDArray | None = No
     a, b = I - m.i0, J - m.j0
     nx, ny = m.shape
     ok = (a >= 0) & (a < nx) & (b >= 0) & (b < ny)
-    a, b = np.where(ok, a, 0), np.where(ok, b, 0)
+    flat = np.where(ok, a * ny + b, 0)  # one flat index, taken from each layer (a 1-D take is the cheap gather)
     layers = (m.elevation, m.risk, m.confidence) if layer is None else (layer,)
-    return tuple(np.where(ok, arr[a, b], np.nan) for arr in layers)
+    return tuple(np.where(ok, np.take(np.ascontiguousarray(arr).reshape(-1), flat), np.nan) for arr in layers)
 
 
 class Atlas:
@@ -175,7 +175,12 @@ class Atlas:
     def gather(self, I: NDArray, J: NDArray, names: tuple[str, ...]) -> list[NDArray]:
         """Return the named fields at lattice cells (I, J); cells of absent tiles get the fill."""
         T = self.tile
-        ti, tj = I // T, J // T
+        if T & (T - 1) == 0:  # a power of two: shifts and masks (floor division of int64 costs twice as much)
+            sh = T.bit_length() - 1
+            ti, tj, li, lj = I >> sh, J >> sh, I & (T - 1), J & (T - 1)
+        else:
+            ti, tj = I // T, J // T
+            li, lj = I - ti * T, J - tj * T
         ti0, tj0 = int(ti.min()), int(tj.min())
         table = np.full((int(ti.max()) - ti0 + 1, int(tj.max()) - tj0 + 1), -1, np.int64)
         for (a, b), slot in self.slots.items():
@@ -183,15 +188,15 @@ class Atlas:
                 table[a - ti0, b - tj0] = slot
         slot = table[ti - ti0, tj - tj0]
         ok = slot >= 0
-        s = np.where(ok, slot, 0)
-        li, lj = I - ti * T, J - tj * T
+        # one flat index into the slot arrays, taken from each field (a 1-D take is the cheap gather)
+        flat = np.where(ok, slot * (T * T) + li * T + lj, 0)
         out = []
         for n in names:
             fill = self.fields[n][1]
             if self.cap == 0:
                 out.append(np.full(I.shape, fill, dtype=self.fields[n][0]))
                 continue
-            out.append(np.where(ok, self.data[n][s, li, lj], fill))
+            out.append(np.where(ok, np.take(self.data[n].reshape(-1), flat), fill))
         return out
 
     def release_older_than(self, stamp: int) -> int:
