@@ -351,3 +351,18 @@ def test_a_lidar_slower_than_the_skew_gives_every_sample_its_latest_scan():
     newest = np.searchsorted(t, samples, side="right") - 1
     assert (got[[0, 1, 2, 3, 4, 6]] == newest[[0, 1, 2, 3, 4, 6]]).all(), got  # 6.3 s: 0.8 s old, within two periods
     assert got[5] == -1  # 7.2 s: the newest scan is 1.7 s old, in the gap
+
+
+def test_first_per_voxel_by_hashing_equals_the_sorting_oracle():
+    """The N-scan input's voxel filter (pandas' hash of the voxel keys) keeps the same
+    points in the same order as np.unique's sort, negative coordinates and ties included."""
+    from gtgen.dataset.scans import first_per_voxel, first_per_voxel_naive
+
+    rng = np.random.default_rng(7)
+    pts = np.concatenate([rng.uniform(-90, 90, (20000, 3)), rng.uniform(-1, 1, (5000, 3))])
+    pts[::7] = pts[3]  # many copies of one point: the first stays
+    for voxel in (0.1, 0.4, 3.0):
+        got = first_per_voxel(pts, voxel)
+        np.testing.assert_array_equal(got, first_per_voxel_naive(pts, voxel))
+        assert got.dtype == np.int64 and 0 < len(got) < len(pts)
+    assert len(first_per_voxel(np.zeros((0, 3)), 0.2)) == 0
