@@ -50,6 +50,14 @@ def _records(msg: object, names: list[str]) -> np.ndarray:
     return np.ascontiguousarray(rows).reshape(-1).view(dt)
 
 
+def _xyz(rec: np.ndarray) -> NDArray[np.float32]:
+    """Return the records' x, y, z as float32 (N, 3): one strided copy where the three are
+    float32 side by side (most drivers), else a column per field."""
+    from numpy.lib.recfunctions import structured_to_unstructured
+
+    return np.ascontiguousarray(structured_to_unstructured(rec[["x", "y", "z"]], dtype=np.float32))
+
+
 def time_field(msg: object) -> str | None:
     """Return the name of the cloud's per-point time field, if it has one."""
     names = {f.name for f in msg.fields}  # type: ignore[attr-defined]
@@ -58,8 +66,7 @@ def time_field(msg: object) -> str | None:
 
 def decode_pointcloud(msg: object) -> NDArray[np.float32]:
     """Return the finite xyz points (N, 3) of a PointCloud2."""
-    rec = _records(msg, list("xyz"))
-    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float32)
+    pts = _xyz(_records(msg, list("xyz")))
     return pts[np.all(np.isfinite(pts), axis=1)]
 
 
@@ -68,7 +75,7 @@ def decode_scan(msg: object) -> tuple[NDArray[np.float32], NDArray[np.float32] |
     field (``TIME_FIELDS``), each point's time relative to the header stamp (N,) [s]."""
     tf = time_field(msg)
     rec = _records(msg, list("xyz") + ([tf] if tf else []))
-    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float32)
+    pts = _xyz(rec)
     ok = np.all(np.isfinite(pts), axis=1)
     if tf is None:
         return pts[ok], None
