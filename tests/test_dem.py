@@ -283,3 +283,23 @@ def test_border_fit_on_smooth_terrain_reports_its_uncertainty(tmp_path, cfg):
     c = got["t11"]
     assert c.status == "ok", c
     assert min(c.border.sigma[:2]) > 1.0, c.border  # a plane: the borders cannot tell where along them the tile lies
+
+
+@pytest.mark.parametrize("crs, offsets", [("EPSG:26910", {}), ("EPSG:26910", {1: (3.3, -1.7, 0.4)}), ("EPSG:32610", {2: (-2.6, 0.9, 0.1)})])
+def test_paged_dem_reads_equal_the_direct_merge(drive_dir, crs, offsets):
+    """DemMosaic.read assembles windows from cached pages; each equals the tiles merged over
+    the window itself (read_direct), across page corners, off the mosaic's edges, with a
+    tile put back and in a CRS the tiles are reprojected to."""
+    from gtgen.dem.tiles import TileOffset
+
+    m = DemMosaic(TileIndex.build(drive_dir / "dem"), crs, offsets={i: TileOffset(*o) for i, o in offsets.items()})
+    l, b, r, t = m.bounds()
+    rng = np.random.default_rng(3)
+    for _ in range(25):
+        cx, cy, hw = rng.uniform(l - 40, r + 40), rng.uniform(b - 40, t + 40), rng.uniform(1, 140)
+        box = (cx - hw, cy - rng.uniform(0.5, 1.5) * hw, cx + hw, cy + hw)
+        (a, oa), (d, od) = m.read(*box), m.read_direct(*box)
+        assert oa == od and a.shape == d.shape
+        tol = 1e-4 if crs != "EPSG:26910" and offsets else 0.0  # float32 rounding of a reprojected tile put back
+        np.testing.assert_allclose(a, d, atol=tol, rtol=0)
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(d))
