@@ -318,3 +318,46 @@ def test_a_steep_smooth_slope_is_not_an_obstacle_and_a_bush_on_it_is(res):
     inner[20, 20] = False
     assert lay.risk[inner].max() < 0.5, lay.risk[inner].max()
     assert lay.risk[20, 20] >= 0.5
+
+
+def _old_rule_risk(ground: np.ndarray, top: np.ndarray, cfg, res: float) -> np.ndarray:
+    """The risk of gtgen before issue 38 (the oracle of the ring): step, slope and roughness of
+    the cells' own ground, the step measured both ways (the lower side of a rock's edge too)."""
+    from gtgen.mapping.layers import geometry, neighbourhood_cells
+
+    k = neighbourhood_cells(cfg, res)
+    up, down = geometry(ground, res, k), geometry(-ground, res, k)  # a step down is a step up of -ground
+    height = np.maximum(top - ground - up["rise"], 0.0)
+    ratio = np.fmax.reduce([np.fmax(up["step"], down["step"]) / cfg.max_step_m, up["slope"] / cfg.max_slope_deg,
+                            up["roughness"] / cfg.max_roughness_m, height / cfg.clearance_m])
+    return np.clip(0.5 * ratio, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("res", [0.2, 0.8])
+def test_a_box_on_a_slope_is_fatal_and_the_ground_around_it_is_not(res):
+    """A box (1 m, or one 0.8 m cell) standing 0.5 m on a 15 deg slope with 2 cm noise: its cells fatal, the ring
+    of cells around it not (the old two-sided step flagged that ring), nor the slope."""
+    from gtgen.config import MappingConfig
+    from gtgen.mapping.layers import layers
+    from scipy import ndimage
+
+    cfg = MappingConfig()
+    rng = np.random.default_rng(38)
+    n = int(round(8.0 / res))
+    x = (np.arange(n) + 0.5) * res
+    ground = np.tan(np.radians(15.0)) * x[:, None] + 0.0 * x[None, :] + rng.normal(0, 0.02, (n, n))
+    near = np.abs(x - x[n // 2]) < 0.45  # 1 m at 0.2 m cells, one cell at 0.8 m
+    box = near[:, None] & near[None, :]
+    ground[box] += 0.5
+    top = ground + np.tan(np.radians(15.0)) * res
+    ground[0, 0] = np.nan  # a cell without ground stays without risk
+    cells = {"ground": ground, "top": top, "n": np.full((n, n), 50.0), "range": np.zeros((n, n)), "age_s": np.zeros((n, n))}
+    lay = layers(cells, cfg, res, np.zeros(2))
+    ring = ndimage.binary_dilation(box, np.ones((3, 3), bool)) & ~box
+    rest = ~box & ~ring & np.isfinite(ground)
+    assert box.sum() >= 1 and ring.sum() >= 8
+    assert lay.risk[box].min() >= 0.5
+    assert lay.risk[ring].max() < 0.5, lay.risk[ring].max()
+    assert lay.risk[rest].max() < 0.5 and np.isnan(lay.risk[0, 0])
+    old = _old_rule_risk(ground, top, cfg, res)
+    assert (old[ring] >= 0.5).mean() > 0.5  # the ring the old rule made (and a wide box's middle it missed)
