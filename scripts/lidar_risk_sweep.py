@@ -42,7 +42,9 @@ def main() -> None:
 
     layers = [read_yaml(configs_dir() / "lidar_maps.yaml")] + ([read_yaml(a.config)] if a.config else [])
     cfg = build_config(*layers, {"dem": {"enabled": False}})
-    rows = []
+    print(f"fatal risk from lidar vs truth ({a.duration:g} s drives; precision / recall on observed cells)")
+    print("| seed | samples | micro P | micro R | short P | short R |")
+    print("|---|---|---|---|---|---|", flush=True)
     for seed in (int(s) for s in a.seeds.split(",")):
         d = a.workdir / f"seed_{seed}"
         drive = d / "drive"
@@ -59,16 +61,11 @@ def main() -> None:
         err = LabelErrors()
         err.add(ds, ds.config, truth, np.arange(ds.n_samples))
         tab = err.table()
-        rows.append((seed, ds.n_samples, tab["micro"]["fatal_risk"], tab["short"]["fatal_risk"], time.perf_counter() - t0))
+        mi, sh = tab["micro"]["fatal_risk"], tab["short"]["fatal_risk"]
+        print(f"| {seed} | {ds.n_samples} | {mi['precision']} | {mi['recall']} | {sh['precision']} | {sh['recall']} |"
+              f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
         if a.clean:
             shutil.rmtree(ws, ignore_errors=True)
-
-    print(f"fatal risk from lidar vs truth ({a.duration:g} s drives; precision / recall on observed cells)")
-    print("| seed | samples | micro P | micro R | short P | short R |")
-    print("|---|---|---|---|---|---|")
-    for seed, n, mi, sh, _ in rows:
-        print(f"| {seed} | {n} | {mi['precision']} | {mi['recall']} | {sh['precision']} | {sh['recall']} |")
-    print(f"(pipeline time per seed: {', '.join(f'{r[-1]:.0f} s' for r in rows)})")
 
 
 if __name__ == "__main__":
