@@ -337,9 +337,10 @@ def _old_rule_risk(ground: np.ndarray, top: np.ndarray, cfg, res: float) -> np.n
 def test_a_box_on_a_slope_is_fatal_and_the_ground_around_it_is_not(res):
     """A box (1 m, or one 0.8 m cell) standing 0.5 m on a 15 deg slope with 2 cm noise: its cells fatal, the ring
     of cells around it not (the old two-sided step flagged that ring), nor the slope."""
+    from scipy import ndimage
+
     from gtgen.config import MappingConfig
     from gtgen.mapping.layers import layers
-    from scipy import ndimage
 
     cfg = MappingConfig()
     rng = np.random.default_rng(38)
