@@ -70,8 +70,9 @@ def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
     ground) per cell, from the plane fitted (least squares) through the k x k
     neighbourhood's cells that have ground: slope is the plane's, roughness the std of the
     cells about it, step the most the cell stands above a neighbour beyond what the
-    plane's slope explains (a step belongs to its higher side), and rise what the plane climbs across one cell (corner to
-    corner), which the points of a cell span on a slope without anything standing on it.
+    plane's slope explains (a step belongs to its higher side), and rise what the plane
+    climbs across one cell (corner to corner), which the points of a cell span on a slope
+    without anything standing on it.
     So a smooth slope is slope, not step, roughness or height, at any cell size. NaN where
     no ground.
 
