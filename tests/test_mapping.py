@@ -130,7 +130,8 @@ def test_layers_hold_ground_under_vegetation_and_flag_obstacles_not_overhangs():
     assert np.abs(lay.elevation[bare]).max() < 0.05
     assert lay.risk[bare].max() < 0.5
     assert np.abs(lay.elevation[rock] - 0.6).max() < 0.05  # the rock is ground, standing out as a step
-    assert lay.risk[(X > 2.9) & (X < 3.1) & (np.abs(Y) < 1) & seen].min() >= 0.5
+    assert lay.risk[rock].min() >= 0.5 and lay.risk[(X > 3.05) & (X < 3.15) & (np.abs(Y) < 1) & seen].min() >= 0.5  # to its edge
+    assert lay.risk[(X > 2.85) & (X < 2.95) & (np.abs(Y) < 1) & seen].max() < 0.5  # the ground below the edge is not
     assert np.abs(lay.elevation[bush]).max() < 0.1  # ground under the bush ...
     assert np.median(lay.top[bush]) > 0.6 and lay.risk[bush].min() >= 0.5  # ... and the bush an obstacle
     assert np.abs(lay.elevation[under]).max() < 0.05 and lay.risk[under].max() < 0.5  # branches overhead: no obstacle
@@ -281,9 +282,9 @@ def test_a_smooth_slope_is_slope_not_step_or_roughness_at_any_cell_size(res):
     geo = geometry(g, res, 3)
     assert np.allclose(geo["slope"][1:-1, 1:-1], 20.0, atol=0.01)
     assert geo["step"][1:-1, 1:-1].max() < 1e-5 and geo["roughness"][1:-1, 1:-1].max() < 1e-5
-    g[20, 20] += 0.5  # a 0.5 m block: a step at it and its neighbours, whatever the slope
+    g[20, 20] += 0.5  # a 0.5 m block: a step on its higher side only (the block), whatever the slope
     geo = geometry(g, res, 3)
-    assert geo["step"][20, 20] > 0.45 and geo["step"][19, 20] > 0.3 and geo["step"][10, 10] < 1e-5
+    assert geo["step"][20, 20] > 0.45 and geo["step"][19, 20] < 0.1 and geo["step"][10, 10] < 1e-5
 
 
 def test_geometry_equals_its_cell_by_cell_oracle():
@@ -317,3 +318,47 @@ def test_a_steep_smooth_slope_is_not_an_obstacle_and_a_bush_on_it_is(res):
     inner[20, 20] = False
     assert lay.risk[inner].max() < 0.5, lay.risk[inner].max()
     assert lay.risk[20, 20] >= 0.5
+
+
+def _old_rule_risk(ground: np.ndarray, top: np.ndarray, cfg, res: float) -> np.ndarray:
+    """The risk of gtgen before issue 38 (the oracle of the ring): step, slope and roughness of
+    the cells' own ground, the step measured both ways (the lower side of a rock's edge too)."""
+    from gtgen.mapping.layers import geometry, neighbourhood_cells
+
+    k = neighbourhood_cells(cfg, res)
+    up, down = geometry(ground, res, k), geometry(-ground, res, k)  # a step down is a step up of -ground
+    height = np.maximum(top - ground - up["rise"], 0.0)
+    ratio = np.fmax.reduce([np.fmax(up["step"], down["step"]) / cfg.max_step_m, up["slope"] / cfg.max_slope_deg,
+                            up["roughness"] / cfg.max_roughness_m, height / cfg.clearance_m])
+    return np.clip(0.5 * ratio, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("res", [0.2, 0.8])
+def test_a_box_on_a_slope_is_fatal_and_the_ground_around_it_is_not(res):
+    """A box (1 m, or one 0.8 m cell) standing 0.5 m on a 15 deg slope with 2 cm noise: its cells fatal, the ring
+    of cells around it not (the old two-sided step flagged that ring), nor the slope."""
+    from scipy import ndimage
+
+    from gtgen.config import MappingConfig
+    from gtgen.mapping.layers import layers
+
+    cfg = MappingConfig()
+    rng = np.random.default_rng(38)
+    n = int(round(8.0 / res))
+    x = (np.arange(n) + 0.5) * res
+    ground = np.tan(np.radians(15.0)) * x[:, None] + 0.0 * x[None, :] + rng.normal(0, 0.02, (n, n))
+    near = np.abs(x - x[n // 2]) < 0.45  # 1 m at 0.2 m cells, one cell at 0.8 m
+    box = near[:, None] & near[None, :]
+    ground[box] += 0.5
+    top = ground + np.tan(np.radians(15.0)) * res
+    ground[0, 0] = np.nan  # a cell without ground stays without risk
+    cells = {"ground": ground, "top": top, "n": np.full((n, n), 50.0), "range": np.zeros((n, n)), "age_s": np.zeros((n, n))}
+    lay = layers(cells, cfg, res, np.zeros(2))
+    ring = ndimage.binary_dilation(box, np.ones((3, 3), bool)) & ~box
+    rest = ~box & ~ring & np.isfinite(ground)
+    assert box.sum() >= 1 and ring.sum() >= 8
+    assert lay.risk[box].min() >= 0.5
+    assert lay.risk[ring].max() < 0.5, lay.risk[ring].max()
+    assert lay.risk[rest].max() < 0.5 and np.isnan(lay.risk[0, 0])
+    old = _old_rule_risk(ground, top, cfg, res)
+    assert (old[ring] >= 0.5).mean() > 0.5  # the ring the old rule made (and a wide box's middle it missed)

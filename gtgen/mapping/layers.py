@@ -1,12 +1,20 @@
 """The stack's layers from a window of cell statistics: ground elevation, risk, confidence, top.
 
 Risk is geometric, as elevation_mapping's traversability filters and X-Racer-style stacks
-compute it, from four ratios to their limits (``mapping.*``): the ground's step within
-``neighbourhood_m``, its slope, its roughness (std within ``neighbourhood_m``) and the
-height of what stands on it (top - ground, less what the local slope spans across the
-cell) against the ground clearance. Risk is half the
-largest ratio, clipped to [0, 1]: 0.5, the fatal threshold of ``train.fatal_risk``, is a
-limit reached. Confidence is density x range x age, each in [0, 1].
+compute it, from ratios to their limits (``mapping.*``), on two surfaces: the cells' ground,
+and the local ground under it, the ground with whatever stands on it narrower than
+``ground_window_m`` taken away (a grey opening: the highest surface a window of that edge
+can be pushed up under the ground, which keeps planes and slopes and removes rocks). The
+local ground is what the wheels roll on: its step within ``neighbourhood_m`` (the higher
+side of a step only: where a wheel meets the edge or drops off it), its slope and its
+roughness (std about the local plane). What stands on it is an obstacle by its own height:
+the cell's ground above the local ground (a rock, against ``max_step_m``), and the cell's top
+above its ground, less what the local slope spans across the cell (a bush, a trunk, against
+the ground clearance). So a rock's cells are fatal and the ground around it is not: the old
+rule measured each cell's step against its neighbours both ways, and the ring of cells
+below a rock's edge read fatal too (``tests/test_mapping.py`` keeps it as an oracle).
+Risk is half the largest ratio, clipped to [0, 1]: 0.5, the fatal threshold of
+``train.fatal_risk``, is a limit reached. Confidence is density x range x age, each in [0, 1].
 """
 
 from __future__ import annotations
@@ -34,17 +42,37 @@ class MapLayers:
 
 def neighbourhood_cells(cfg: MappingConfig, res: float) -> int:
     """Return the odd neighbourhood edge in cells (at least 3) of ``neighbourhood_m``."""
-    k = int(round(cfg.neighbourhood_m / res))
+    return window_cells(cfg.neighbourhood_m, res)
+
+
+def window_cells(window_m: float, res: float) -> int:
+    """Return the odd window edge in cells (at least 3) of ``window_m`` at cells of ``res``."""
+    k = int(round(window_m / res))
     return max(3, k + 1 - k % 2)
+
+
+def local_ground(ground: NDArray, k: int) -> NDArray:
+    """Return the grey opening of ``ground`` (NaN: no ground) by a k x k window: at each cell
+    the highest of the minima of the k x k windows that hold it, over the cells with ground.
+    Never above the ground; equal to it on planes and on any surface whose bumps are wider
+    than the window; NaN where no ground."""
+    valid = np.isfinite(ground)
+    c = k // 2
+    # windows reach past the grid's border and the ground's edge: the minimum is over the cells
+    # with ground only, so a slope's last cells are not cut below their own height
+    low = ndimage.minimum_filter(np.pad(np.where(valid, ground, np.inf), c, constant_values=np.inf), size=k, mode="constant", cval=np.inf)
+    base = ndimage.maximum_filter(np.where(np.isfinite(low), low, -np.inf), size=k, mode="constant", cval=-np.inf)
+    return np.where(valid, base[c:c + ground.shape[0], c:c + ground.shape[1]], np.nan)
 
 
 def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
     """Return the step [m], slope [deg], roughness [m] and rise [m] of ``ground`` (NaN: no
     ground) per cell, from the plane fitted (least squares) through the k x k
     neighbourhood's cells that have ground: slope is the plane's, roughness the std of the
-    cells about it, step the largest jump from the cell to a neighbour beyond what the
-    plane's slope explains, and rise what the plane climbs across one cell (corner to
-    corner), which the points of a cell span on a slope without anything standing on it.
+    cells about it, step the most the cell stands above a neighbour beyond what the
+    plane's slope explains (a step belongs to its higher side), and rise what the plane
+    climbs across one cell (corner to corner), which the points of a cell span on a slope
+    without anything standing on it.
     So a smooth slope is slope, not step, roughness or height, at any cell size. NaN where
     no ground.
 
@@ -86,7 +114,7 @@ def geometry(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
                 continue
             gn = gp[c + di: c + di + H, c + dj: c + dj + W]
             vn = vp[c + di: c + di + H, c + dj: c + dj + W]
-            jump = np.abs(gn - g32 - (bx32 * di + by32 * dj))
+            jump = g32 - gn + (bx32 * di + by32 * dj)
             np.maximum(step, np.where(vn, jump, 0.0), out=step)
     nan = ~valid
     rise = np.where(fit, (np.abs(bx) + np.abs(by)) * res, 0.0)
@@ -114,18 +142,22 @@ def geometry_naive(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
             out["rise"][i, j] = (abs(bx) + abs(by)) * res
             out["roughness"][i, j] = np.sqrt(max(np.mean((P[:, 2] - (a0 + bx * P[:, 0] + by * P[:, 1])) ** 2), 0.0))
             out["slope"][i, j] = np.degrees(np.arctan(np.hypot(bx, by)))
-            out["step"][i, j] = max([abs(z - ground[i, j] - (bx * x + by * y)) for x, y, z in P if (x, y) != (0, 0)], default=0.0)
+            out["step"][i, j] = max([ground[i, j] - z + bx * x + by * y for x, y, z in P if (x, y) != (0, 0)] + [0.0])
     return out
 
 
 def layers(cells: dict[str, NDArray], cfg: MappingConfig, res: float, center: NDArray) -> MapLayers:
     """Return the layers of a crop of cell statistics (``RollingCells.crop``)."""
     ground, top = cells["ground"], cells["top"]
-    geo = geometry(ground, res, neighbourhood_cells(cfg, res))
-    # what stands on the ground: the cell's top above its ground, less what a slope spans across the cell
-    height = np.where(np.isfinite(ground), np.maximum(top - ground - geo["rise"], 0.0), np.nan)
+    base = local_ground(ground, window_cells(cfg.ground_window_m, res))
+    geo = geometry(base, res, neighbourhood_cells(cfg, res))
+    # what stands on the local ground: the cell's own ground above it (a rock), and the cell's
+    # top above its ground, less what the local slope spans across the cell (a bush, a trunk)
+    valid = np.isfinite(ground)
+    standing = np.where(valid, ground - base, np.nan)
+    height = np.where(valid, np.maximum(top - ground - geo["rise"], 0.0), np.nan)
     ratio = np.fmax.reduce([geo["step"] / cfg.max_step_m, geo["slope"] / cfg.max_slope_deg,
-                            geo["roughness"] / cfg.max_roughness_m, height / cfg.clearance_m])
+                            geo["roughness"] / cfg.max_roughness_m, standing / cfg.max_step_m, height / cfg.clearance_m])
     risk = np.clip(0.5 * ratio, 0.0, 1.0)
     conf = (-np.expm1(-cells["n"] / cfg.full_points)) * np.exp2(-cells["range"] / cfg.range_half_m) * np.exp2(-cells["age_s"] / cfg.age_half_s)
     conf = np.where(np.isfinite(ground), np.clip(conf, 0.0, 1.0), 0.0)
