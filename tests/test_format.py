@@ -6,7 +6,7 @@ import zarr
 
 from gtgen.storage import schema as sc
 from gtgen.storage.chunks import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
-from gtgen.storage.dataset import ShardWriter, write_block
+from gtgen.storage.dataset_writer import ShardWriter, write_block
 from gtgen.storage.specs import row_shape
 
 

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from gtgen.storage.chunks import array_json, chunk_file, chunk_key, encodes_like_gtgen
+from gtgen.storage.packing import CF_KEYS
 
 _EMPTY = 2**64 - 1
 
@@ -33,7 +34,8 @@ _EMPTY = 2**64 - 1
 def sample_layout(arr: Any) -> dict | None:
     """Return what must match for byte copies of ``arr``'s samples (from its ``zarr.json``),
     or None unless it is sharded along axis 0 with one sample per inner chunk, whole rows,
-    the index at the end with bytes + crc32c index codecs, and '/' chunk keys."""
+    the index at the end with bytes + crc32c index codecs, and '/' chunk keys. Packed
+    arrays' bytes mean the same values only at the same steps (their CF attributes)."""
     meta = array_json(arr)
     codecs = (meta or {}).get("codecs") or []
     if len(codecs) != 1 or codecs[0].get("name") != "sharding_indexed":
@@ -47,8 +49,9 @@ def sample_layout(arr: Any) -> dict | None:
     enc = meta.get("chunk_key_encoding", {})
     if enc.get("name") != "default" or enc.get("configuration", {}).get("separator", "/") != "/":
         return None
+    attrs = meta.get("attributes", {})
     return {"dtype": meta["data_type"], "fill": str(meta["fill_value"]), "grid": meta["chunk_grid"], "codecs": codecs,
-            "tail": list(arr.shape[1:])}
+            "tail": list(arr.shape[1:]), "packing": [attrs.get(k) for k in CF_KEYS]}
 
 
 def samples_per_shard(layout: dict) -> int:
