@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.config import PrecisionConfig, stored_config
 from gtgen.runtime.progress import track
-from gtgen.storage.chunks import Encoded, RowAppender, encode_row
+from gtgen.storage.chunks import Encoded, RowAppender, codec_of, encode_row
 from gtgen.storage.dataset import DatasetSample, DatasetStore
 from gtgen.storage.packing import Packing, packing_for, packing_of
 from gtgen.storage.schema import (
@@ -225,6 +225,7 @@ class _Meta:
     fill: object
     row_shape: tuple[int, ...]
     packing: Packing | None
+    codec: str
 
 
 _LAYOUT: dict[str, dict[str, tuple[_Meta, bool]]] = {}
@@ -243,7 +244,8 @@ def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
             arr = root[s.path]
             meta = sample_layout(arr)
             ok = meta is not None and samples_per_shard(meta) == SAMPLES_PER_SHARD and chunks_like_gtgen(meta, arr.dtype)
-            meta_ = _Meta(np.dtype(arr.dtype), arr.fill_value, tuple(int(n) for n in arr.shape[1:]), packing_of(arr.attrs, arr.dtype))
+            meta_ = _Meta(np.dtype(arr.dtype), arr.fill_value, tuple(int(n) for n in arr.shape[1:]), packing_of(arr.attrs, arr.dtype),
+                          (codec_of(meta["codecs"][0]["configuration"]["codecs"], arr.dtype) if meta else None) or "zstd")
             layout[s.path] = (meta_, ok)
         _LAYOUT[path] = layout
     return _LAYOUT[path]
@@ -253,9 +255,9 @@ def _inner_chunk(value: NDArray | Encoded, m: _Meta, path: str = "") -> bytes | 
     """Return the encoded inner chunk of one sample (None where it is all fill); a packed
     array's values are floats, packed here."""
     if isinstance(value, Encoded):
-        if m.packing is None and value.shape == (1, *m.row_shape) and value.same_layout(m.dtype, m.fill):
+        if m.packing is None and value.shape == (1, *m.row_shape) and value.same_layout(m.dtype, m.fill, m.codec):
             return value.data
         value = value.decode()[0]
     if m.packing is not None:
         value = m.packing.pack(value, path)
-    return encode_row(value, m.dtype, m.row_shape, m.fill)
+    return encode_row(value, m.dtype, m.row_shape, m.fill, m.codec)

@@ -264,7 +264,7 @@ class DriveWriter(StoreWriter):
         chunk file each, as zarr would write it)."""
         path = "samples/jpeg"
         if path not in self._seps:
-            self._seps[path] = check_encoded_chunks(self.root[path])
+            self._seps[path] = check_encoded_chunks(self.root[path])[0]
         data = encode_chunk(row.reshape(1, 1, -1))
         for s in samples:
             f = chunk_file(self.path, path, (s, camera, 0), self._seps[path])
@@ -287,7 +287,7 @@ class DriveWriter(StoreWriter):
         """Make the chunks ``coords`` of ``path`` hold staged chunk file ``src`` (the last
         use takes the file, earlier ones link to it)."""
         if path not in self._seps:
-            self._seps[path] = check_encoded_chunks(self.root[path])
+            self._seps[path] = check_encoded_chunks(self.root[path])[0]
         for n, c in enumerate(coords):
             place_chunk(src, chunk_file(self.path, path, c, self._seps[path]), move=n == len(coords) - 1, made=self._made)
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from gtgen.storage.chunks import array_json, chunk_file, chunk_key, encodes_like_gtgen
+from gtgen.storage.chunks import array_json, chunk_file, chunk_key, codec_of, encodes_like_gtgen
 from gtgen.storage.packing import CF_KEYS
 
 _EMPTY = 2**64 - 1
@@ -158,6 +158,7 @@ class SampleReader:
             self.root, self.path, self.ndim = Path(root), arr.path, arr.ndim
             self.n = samples_per_shard(layout)
             self.shape, self.dtype, self.fill = tuple(arr.shape[1:]), np.dtype(arr.dtype), arr.fill_value
+            self.codec = codec_of(layout["codecs"][0]["configuration"]["codecs"], arr.dtype) or "zstd"
             self._index: dict[int, np.ndarray | None] = {}  # the index entries of each large shard read so far
             self._small: set[int] = set()
 
@@ -210,4 +211,4 @@ class SampleReader:
         from gtgen.storage.chunks import Encoded
 
         s, i = divmod(int(k), self.n)
-        return Encoded(self._chunk(s, i), self.dtype, (1, *self.shape), self.fill).decode()[0]
+        return Encoded(self._chunk(s, i), self.dtype, (1, *self.shape), self.fill, self.codec).decode()[0]
