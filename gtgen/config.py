@@ -340,6 +340,7 @@ class ShardsConfig(_Model):
     """The dataset store."""
 
     precision: PrecisionConfig = Field(default_factory=PrecisionConfig, description="steps of the packed arrays")
+    qa_ranges: list[Literal["micro", "short"]] = Field(default_factory=list, description="ranges whose QA-only grids are stored (labels confidence, count, last_dt_s; X-Racer confidence; the aligned DEM): read by viz, export and report's comparisons, never by train or eval; [micro, short] keeps them all")
 
     val_fraction: float = Field(0.25, ge=0, lt=1, description="share of geography blocks held out")
     split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")

@@ -67,7 +67,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
             _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json") as al:
         writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, len(drive.cameras), drive.jpeg_capacity,
                              scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None,
-                             precision=cfg.shards.precision)
+                             precision=cfg.shards.precision, qa_ranges=cfg.shards.qa_ranges)
         kept = _record(al, writer)
         ctx = Context(drive, fused, al.dem, tmp, cfg)
         with Pool(workers) as pool:

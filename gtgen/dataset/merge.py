@@ -35,7 +35,8 @@ class DatasetMerger:
         src = DatasetStore(dataset)
         if self.writer is None:
             self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size,
-                                      len(src.cameras), src.jpeg_capacity, scans=src.scan_dims, precision=self.cfg.shards.precision)
+                                      len(src.cameras), src.jpeg_capacity, scans=src.scan_dims, precision=self.cfg.shards.precision,
+                                      qa_ranges=self.cfg.shards.qa_ranges)
             self._first = src.info
         elif src.cameras != self._first.cameras:
             raise GtgenError(f"drive {name!r} has the cameras {src.cameras}, the drives before it {self._first.cameras}: a dataset "

@@ -16,10 +16,8 @@ from numpy.typing import NDArray
 
 from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig, stored_config
-from gtgen.storage.schema import (
-    DATASET,
-    DatasetAttrs,
-)
+from gtgen.errors import StoreError
+from gtgen.storage.schema import DATASET, DatasetAttrs, qa_paths
 from gtgen.storage.stores import Rows, Store
 
 GRID_KINDS = {"labels": ("elevation_m", "risk", "confidence", "region", "count", "last_dt_s"),
@@ -118,14 +116,28 @@ class DatasetStore(Store):
         split = self.meta("split")
         return {name: np.nonzero(split == code)[0] for code, name in codes.SPLITS.items()}
 
+    def has_grid(self, kind: str, rng: str, layer: str) -> bool:
+        """Whether the dataset stores grid ``kind/rng/layer`` (a QA grid only for the ranges
+        of its ``shards.qa_ranges``)."""
+        path = _grid_path(kind, rng, layer)
+        return path not in qa_paths() or rng in self.config.shards.qa_ranges
+
+    def _stored_grid(self, kind: str, rng: str, layer: str) -> str:
+        path = _grid_path(kind, rng, layer)
+        if not self.has_grid(kind, rng, layer):
+            raise StoreError(f"dataset '{self.path}' does not store the QA grid '{path}' (shards.qa_ranges: "
+                             f"{self.config.shards.qa_ranges}); rebuild it with shards.qa_ranges: [micro, short] in --config "
+                             "('gtgen dem-align --overwrite') to have it")
+        return path
+
     def grid(self, kind: str, rng: str, layer: str) -> Rows:
         """Return the reader of grid ``kind/rng/layer`` (``labels``, ``xracer``, ``dem``;
-        ``reader[k]``: sample k's grid in its target frame)."""
-        return self._rows(_grid_path(kind, rng, layer))
+        ``reader[k]``: sample k's grid in its target frame, as floats)."""
+        return self._rows(self._stored_grid(kind, rng, layer))
 
     def grids(self, kind: str, rng: str, layer: str, rows: Any) -> NDArray:
         """Return grid ``kind/rng/layer`` of samples ``rows`` (sorted) in one read."""
-        return self.read(_grid_path(kind, rng, layer), rows)
+        return self.read(self._stored_grid(kind, rng, layer), rows)
 
     def inputs(self, name: str) -> Rows:
         """Return the reader of per-sample input ``name`` (``SAMPLE_INPUTS``)."""

@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen import codes
-from gtgen.config import PrecisionConfig, stored_config
+from gtgen.config import RANGES, PrecisionConfig, stored_config
+from gtgen.errors import StoreError
 from gtgen.runtime.progress import track
 from gtgen.storage.chunks import Encoded, RowAppender, codec_of, encode_row
 from gtgen.storage.dataset import DatasetSample, DatasetStore
@@ -28,6 +29,7 @@ from gtgen.storage.schema import (
     SCAN_ARRAYS,
     TIME_ATTRS,
     DatasetAttrs,
+    qa_paths,
 )
 from gtgen.storage.shards import chunks_like_gtgen, copy_samples, sample_layout, samples_per_shard, shard_file, write_shard
 from gtgen.storage.specs import row_shape
@@ -43,16 +45,18 @@ class ShardWriter(StoreWriter):
 
     Arrays are created at ``max_samples``, grown if more come, and shrunk to the samples
     written on close. Packed arrays store their values at the steps of ``precision``
-    (``shards.precision``).
+    (``shards.precision``); the QA grids (``schema.QA_GRIDS``) exist only for ``qa_ranges``
+    (``shards.qa_ranges``).
     """
 
     fmt = DATASET
 
     def __init__(self, path: Path, max_samples: int, micro: int, short: int, cameras: int, jpeg_capacity: int,
-                 scans: tuple[int, int] | None = None, precision: PrecisionConfig | None = None) -> None:
+                 scans: tuple[int, int] | None = None, precision: PrecisionConfig | None = None, qa_ranges: Any = ()) -> None:
         super().__init__(path)
         precision = precision or PrecisionConfig()
         self.packings: dict[str, Packing | None] = {}
+        self.qa_ranges = tuple(qa_ranges)
         _LAYOUT.pop(str(path), None)  # a store made anew at a path seen before
         dims = {"n_m": micro, "n_s": short, "C": cameras, "B": jpeg_capacity}
         self.jpeg_capacity = jpeg_capacity
@@ -60,7 +64,10 @@ class ShardWriter(StoreWriter):
             dims.update({"P_s": scans[0], "N_s": scans[1]})
         self.arrays: dict[str, Any] = {}
         K = SAMPLES_PER_SHARD
+        left_out = set(qa_paths(tuple(r for r in RANGES if r not in qa_ranges)))
         for s in SAMPLE_ARRAYS + (CAMERA_ARRAYS if cameras else ()) + (SCAN_ARRAYS if scans is not None else ()):
+            if s.path in left_out:
+                continue
             inner = row_shape(s, dims)
             self.packings[s.path] = pk = packing_for(s, precision)
             self.arrays[s.path] = self.create(s.path, (max(max_samples, 1), *inner), chunks=(1, *inner), shards=(K, *inner), packing=pk)
@@ -109,6 +116,9 @@ class ShardWriter(StoreWriter):
         def one(p: str) -> None:
             if p.startswith("inputs/scan_") and src.scan_dims != self._scan_dims:
                 return  # a drive without raw scans (or with another N-scan layout): its samples have none
+            if p not in src.group:
+                raise StoreError(f"dataset '{src.path}' has no array '{p}' (its shards.qa_ranges differ from this build's "
+                                 f"{list(self.qa_ranges)}): rebuild it with the build's config")
             if not copy_samples(src.array(p), src.path, self.root, self.path, p, off, S, check=src.manifest.check):
                 for a0 in range(0, S, SAMPLES_PER_SHARD):
                     self.arrays[p][off + a0 : off + min(a0 + SAMPLES_PER_SHARD, S)] = self._stored(p, src.read(p, slice(a0, a0 + SAMPLES_PER_SHARD)))
@@ -240,7 +250,7 @@ def _block_layout(path: str) -> dict[str, tuple[_Meta, bool]]:
         _LAYOUT.clear()
         root = zarr.open_group(path, mode="r")
         layout = {}
-        for s in SAMPLE_ARRAYS + tuple(sp for sp in CAMERA_ARRAYS + SCAN_ARRAYS if sp.path in root):
+        for s in tuple(sp for sp in SAMPLE_ARRAYS + CAMERA_ARRAYS + SCAN_ARRAYS if sp.path in root):
             arr = root[s.path]
             meta = sample_layout(arr)
             ok = meta is not None and samples_per_shard(meta) == SAMPLES_PER_SHARD and chunks_like_gtgen(meta, arr.dtype)

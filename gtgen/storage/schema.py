@@ -194,6 +194,17 @@ DATASET = StoreFormat("gtgen-dataset", 9, tuple(_DATASET + COORDS), "gtgen dem-a
                       "rebuild it with 'gtgen dem-align --overwrite' (or 'gtgen build DRIVES... -o OUT --overwrite'): version 9 "
                       "stores grids and points as CF packed integers at the steps of shards.precision")
 
+# the grids only quality checks read (gtgen viz, export, report's comparisons; never train
+# or eval), stored only for the ranges in shards.qa_ranges (none by default): the DEM's
+# heights where the label needs them are its region-3 cells already
+QA_GRIDS = {"labels": ("confidence", "count", "last_dt_s"), "xracer": ("confidence",), "dem": ("elevation_m",)}
+
+
+def qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
+    """Return the paths of the QA grids of ``ranges``."""
+    return tuple(f"{k}/{r}/{layer}" for k, layers in QA_GRIDS.items() for r in ranges for layer in layers)
+
+
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
 # are there only when the drives have raw scans, the images' only when they have cameras
 SCAN_ARRAYS: tuple[ArraySpec, ...] = tuple(s for s in _DATASET if s.path.startswith("inputs/scan_"))
