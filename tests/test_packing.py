@@ -77,7 +77,7 @@ def _config(qa_ranges):
 def _samples(rng):
     """S samples of float values as dem-align makes them (NaN holes), by array path."""
     out = []
-    for k in range(S):
+    for _ in range(S):
         s = _Flat()
         for spec in sc.SAMPLE_ARRAYS:
             shape = row_shape(spec, {"n_m": MICRO, "n_s": SHORT})

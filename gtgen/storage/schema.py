@@ -200,6 +200,18 @@ DATASET = StoreFormat("gtgen-dataset", 9, tuple(_DATASET + COORDS), "gtgen dem-a
 QA_GRIDS = {"labels": ("confidence", "count", "last_dt_s"), "xracer": ("confidence",), "dem": ("elevation_m",)}
 
 
+# what reads each per-sample grid and point array of a dataset (data_schema.md's packing table)
+READ_BY = {
+    "labels/{r}/elevation_m": "train, eval, report, viz, export", "labels/{r}/risk": "train, eval, report, viz, export",
+    "labels/{r}/region": "train, eval, report, viz, export", "labels/{r}/confidence": "QA: viz, export mcap",
+    "labels/{r}/count": "QA: export", "labels/{r}/last_dt_s": "QA: export", "xracer/{r}/elevation_m": "train, eval (X-Racer row), report, viz",
+    "xracer/{r}/risk": "train, eval (X-Racer row), export mcap", "xracer/{r}/confidence": "QA: report (X-Racer's confident cells; else region 1), export mcap",
+    "dem/{r}/elevation_m": "QA: viz, export (its heights the label needs are region 3's already)",
+    "inputs/raw_elevation_m": "train, eval (raw-grid rows)", "inputs/voxel_points_m": "train, eval, export mcap",
+    "inputs/scan_points_m": "train (train.geometry: scans)",
+}
+
+
 def qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
     """Return the paths of the QA grids of ``ranges``."""
     return tuple(f"{k}/{r}/{layer}" for k, layers in QA_GRIDS.items() for r in ranges for layer in layers)
