@@ -106,7 +106,8 @@ def _block(rng, S, micro, short, nb, src):
             if spec.packed:  # floats, packed by write_block
                 v = (rng.uniform(0, 1, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(np.float32)
             else:
-                v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.normal(size=shape)).astype(dt)
+                v = (rng.integers(0, 4, shape) if dt.kind == "u" else rng.integers(1, 4, shape) if dt.kind == "i"
+                     else rng.normal(size=shape)).astype(dt)
             if spec.path == "labels/micro/risk" and k == 2:
                 v[:] = np.nan  # all fill: no inner chunk
             s[spec.path] = v
