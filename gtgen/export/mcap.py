@@ -7,11 +7,11 @@ Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
   stay small; a drive without a DEM: its odom frame, shifted alike), ``target -> base_link`` (``inputs/T_target_base``) and
   ``base_link -> camera_<name>`` (``inputs/T_base_cam``);
 - ``/gtgen/labels/<range>``: ``grid_map_msgs/GridMap`` in ``target`` with the layers
-  ``elevation``, ``risk``, ``confidence``, ``region``, ``count``, ``last_dt_s`` and
-  ``dem_elevation`` (the aligned DEM), heights relative to the base at t as in the
-  dataset;
-- ``/gtgen/xracer/<range>``: the X-Racer map at t (``elevation``, ``risk``,
-  ``confidence``), same frame;
+  ``elevation``, ``risk``, ``region`` and, where the dataset keeps the QA grids
+  (``shards.qa_ranges``), ``confidence``, ``count``, ``last_dt_s`` and ``dem_elevation``
+  (the aligned DEM), heights relative to the base at t as in the dataset;
+- ``/gtgen/xracer/<range>``: the X-Racer map at t (``elevation``, ``risk``, and
+  ``confidence`` with the QA grids), same frame;
 - ``/gtgen/labels/<range>/grid``: the labels as ``foxglove_msgs/Grid`` (``elevation``,
   ``risk``, ``region``), which Foxglove's 3D panel colours without a plugin;
 - ``/gtgen/camera_<name>/image/compressed``: the stored JPEG file as it is (rectified),
