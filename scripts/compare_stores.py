@@ -55,7 +55,7 @@ def compare(a: zarr.Array, b: zarr.Array, tol: float, decode: bool = False) -> t
         d = np.abs(np.where(np.isnan(x), 0, x) - np.where(np.isnan(y), 0, y))
         m = float(d.max()) if d.size else 0.0
         what = "equal" if m == 0 else f"max |diff| {m:.3g}"
-        return m <= tol, what + (f" (step {step:g}: {m / step:.3f} steps)" if step else "")
+        return m <= tol, what + (f" (step {step:g}: {m / step:.3f} steps)" if step and m else "")
     same = np.array_equal(x, y)
     return same, "equal" if same else f"{int((x != y).sum())} values differ"
 
