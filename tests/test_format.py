@@ -5,7 +5,8 @@ import pytest
 import zarr
 
 from gtgen.storage import schema as sc
-from gtgen.storage.chunks import ChunkFiles, Encoded, check_encoded_chunks, chunk_file, compressors, encode_chunk
+from gtgen.storage.chunks import ChunkFiles, Encoded, check_encoded_chunks, chunk_file
+from gtgen.storage.codecs import compressors, encode_chunk
 from gtgen.storage.dataset_writer import ShardWriter, write_block
 from gtgen.storage.packing import packing_of
 from gtgen.storage.specs import row_shape

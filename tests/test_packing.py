@@ -12,7 +12,7 @@ import zarr
 from gtgen.config import load_config
 from gtgen.errors import StoreError
 from gtgen.storage import schema as sc
-from gtgen.storage.chunks import compressors, decode_chunk, encode_chunk
+from gtgen.storage.codecs import compressors, decode_chunk, encode_chunk
 from gtgen.storage.dataset import DatasetStore
 from gtgen.storage.dataset_writer import ShardWriter, write_block
 from gtgen.storage.packing import Packing, PackingError, packing_for

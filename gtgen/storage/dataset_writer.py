@@ -16,7 +16,8 @@ from gtgen import codes
 from gtgen.config import RANGES, PrecisionConfig, stored_config
 from gtgen.errors import StoreError
 from gtgen.runtime.progress import track
-from gtgen.storage.chunks import Encoded, RowAppender, codec_of, encode_row
+from gtgen.storage.chunks import Encoded, RowAppender, encode_row
+from gtgen.storage.codecs import codec_of
 from gtgen.storage.dataset import DatasetSample, DatasetStore
 from gtgen.storage.packing import Packing, packing_for, packing_of
 from gtgen.storage.schema import (

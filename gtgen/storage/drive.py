@@ -13,7 +13,8 @@ from numpy.typing import NDArray
 
 from gtgen.config import RANGES, GtgenConfig, stored_config
 from gtgen.geometry import quat_to_yaw
-from gtgen.storage.chunks import check_encoded_chunks, chunk_file, encode_chunk, make_parent, place_chunk
+from gtgen.storage.chunks import check_encoded_chunks, chunk_file, make_parent, place_chunk
+from gtgen.storage.codecs import encode_chunk
 from gtgen.storage.schema import DRIVE, MAP_LAYERS
 from gtgen.storage.stores import Rows, Store, StoreWriter
 

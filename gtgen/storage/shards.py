@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from gtgen.storage.chunks import array_json, chunk_file, chunk_key, codec_of, encodes_like_gtgen
+from gtgen.storage.chunks import array_json, chunk_file, chunk_key
+from gtgen.storage.codecs import codec_of, encodes_like_gtgen
 from gtgen.storage.packing import CF_KEYS
 
 _EMPTY = 2**64 - 1

@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 from gtgen.errors import GtgenError, StoreError
 from gtgen.runtime.output import partials
 from gtgen.storage.checked import checked_store
-from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
+from gtgen.storage.chunks import ChunkFiles, RangeReader
+from gtgen.storage.codecs import compressors
 from gtgen.storage.integrity import (
     MANIFEST,
     METADATA,
