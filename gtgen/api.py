@@ -4,6 +4,7 @@ the stages (storage below, the trainer's torch view reached lazily), so no stage
     ds = gtgen.open_dataset("gtgen_ws/dataset.zarr")
     ds.splits["val"]                       # sample indices of the val split
     ds.schema["labels/micro/elevation_m"]  # dtype, shape, units, frame, fill, meaning
+    ds.read("labels/micro/elevation_m", slice(0, 4))  # floats [m] (stored as packed integers)
     labels = ds.xarray("labels/micro")     # xarray.Dataset: sample (time) x x_m x y_m
     ds.cameras                             # the camera names, in the order of the images
     front, left, right, back = ds.images(0)  # sample 0's images decoded (H, W, 3) RGB (an X-Racer rig)
@@ -36,8 +37,15 @@ class Dataset:
 
     @property
     def zarr(self) -> Any:
-        """The zarr group of the dataset, read through gtgen's checked store."""
+        """The zarr group of the dataset, read through gtgen's checked store (packed arrays
+        as their stored integers: ``scale_factor``, ``add_offset`` and ``_FillValue`` in
+        their attributes; ``read`` and ``xarray`` give the floats)."""
         return self.store.group
+
+    def read(self, path: str, rows: Any = None) -> np.ndarray:
+        """Return array ``path`` whole or its ``rows`` (a slice or sorted indices), packed
+        arrays as floats in their units (NaN where unset)."""
+        return self.store.read(path, rows)
 
     @property
     def schema(self) -> dict[str, ArraySpec]:

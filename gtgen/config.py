@@ -324,8 +324,23 @@ class ReportConfig(_Model):
     bad_fill_m: float = Field(0.15, gt=0, description="a sample is bad when its DEM fill would be this wrong on average over its short grid [m]: the DEM where the sample was put minus the true ground (misplaced on a slope, a shifted or wrong tile, changed terrain)")
 
 
+class PrecisionConfig(_Model):
+    """Steps the dataset stores its float grids and points at, as CF packed integers
+    (``scale_factor``; ``gtgen/storage/packing.py``): a value is stored rounded to its step,
+    so it reads back within half a step."""
+
+    elevation_m: float = Field(0.001, ge=1e-5, le=0.05, description="step of the label and X-Racer elevations (int32) [m]")
+    fraction: float = Field(0.001, ge=2e-5, le=0.01, description="step of risk and confidence (uint16) [1]")
+    time_s: float = Field(0.001, ge=1e-4, le=1.0, description="step of the label's last observation time (int32) [s]")
+    dem_m: float = Field(0.01, ge=1e-5, le=0.1, description="step of the aligned DEM grids (int32) [m]")
+    points_m: float = Field(0.01, ge=1e-4, le=0.05, description="step of the voxel and raw-scan point coordinates and of the raw min-z grid (int32) [m]")
+
+
 class ShardsConfig(_Model):
     """The dataset store."""
+
+    precision: PrecisionConfig = Field(default_factory=PrecisionConfig, description="steps of the packed arrays")
+    qa_ranges: list[Literal["micro", "short"]] = Field(default_factory=list, description="ranges whose QA-only grids are stored (labels confidence, count, last_dt_s; X-Racer confidence; the aligned DEM): read by viz, export and report's comparisons, never by train or eval; [micro, short] keeps them all")
 
     val_fraction: float = Field(0.25, ge=0, lt=1, description="share of geography blocks held out")
     split_block_m: float = Field(200.0, gt=0, description="edge of the geography blocks of the split [m]")

@@ -62,9 +62,11 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
         ext = (L, -L, -L, L)  # left edge is +y (left), top is +x (forward)
         panels = [
             (el, "terrain", vmin, vmax), (ds.grid("labels", r, "risk")[index], "magma", 0, 1),
-            (ds.grid("labels", r, "confidence")[index], "viridis", 0, 1), (REGION_COLORS[reg], None, None, None),
-            (ds.grid("xracer", r, "elevation_m")[index], "terrain", vmin, vmax), (ds.grid("dem", r, "elevation_m")[index], "terrain", vmin, vmax),
+            (_qa_grid(ds, "labels", r, "confidence", index, el.shape), "viridis", 0, 1), (REGION_COLORS[reg], None, None, None),
+            (ds.grid("xracer", r, "elevation_m")[index], "terrain", vmin, vmax),
+            (_qa_grid(ds, "dem", r, "elevation_m", index, el.shape), "terrain", vmin, vmax),
         ]
+        missing = {2: not ds.has_grid("labels", r, "confidence"), 5: not ds.has_grid("dem", r, "elevation_m")}
         if prediction:  # a single-range model's other range: empty panels
             none = np.full(el.shape, np.nan)
             panels += [(prediction.get(f"{r}/elevation", none), "terrain", vmin, vmax), (prediction.get(f"{r}/risk", none), "magma", 0, 1)]
@@ -72,7 +74,7 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
             ax = fig.add_subplot(gs[row, c_i])
             im = ax.imshow(forward_up(arr), cmap=cmap, vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
             ax.plot([0], [0], marker="^", color="red", markersize=8)
-            ax.set_title(f"{r}: {cols[c_i]}", fontsize=9)
+            ax.set_title(f"{r}: {cols[c_i]}" + ("\n(not stored: shards.qa_ranges)" if missing.get(c_i) else ""), fontsize=9)
             ax.set_xlabel("y left [m]", fontsize=7)
             ax.set_ylabel("x forward [m]", fontsize=7)
             ax.tick_params(labelsize=7)
@@ -94,3 +96,9 @@ def render_sample(dataset: Path, index: int, out: Path, prediction: dict[str, np
     save_figure(fig, out, overwrite, dpi=70)
     plt.close(fig)
     return out
+
+
+def _qa_grid(ds: DatasetStore, kind: str, r: str, layer: str, index: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Return sample ``index``'s QA grid, or NaN (a blank panel) where the dataset does not
+    store it (``shards.qa_ranges``)."""
+    return ds.grid(kind, r, layer)[index] if ds.has_grid(kind, r, layer) else np.full(shape, np.nan, np.float32)

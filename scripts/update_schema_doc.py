@@ -13,7 +13,9 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from gtgen import codes
-from gtgen.storage.schema import DATASET, DRIVE, FORMATS, FUSED, DatasetAttrs
+from gtgen.config import PrecisionConfig
+from gtgen.storage.packing import fill_of
+from gtgen.storage.schema import DATASET, DRIVE, FORMATS, FUSED, READ_BY, DatasetAttrs, qa_paths
 from gtgen.storage.specs import markdown_table
 
 
@@ -58,7 +60,23 @@ def attributes_table() -> str:
     return "\n".join(rows)
 
 
+def packing_table() -> str:
+    """Return the dataset's packed arrays: stored dtype, step (its ``shards.precision`` key
+    and default), NaN's stored value, whether it is a QA grid, and what reads it."""
+    rows = ["| array | stored | step (default) | NaN stored as | kept | read by |", "|---|---|---|---|---|---|"]
+    qa = set(qa_paths())
+    for s in DATASET.arrays:
+        if not s.packed:
+            continue
+        step = PrecisionConfig.model_fields[s.packed].default
+        generic = s.path.replace("/micro/", "/{r}/").replace("/short/", "/{r}/")
+        kept = "only for shards.qa_ranges" if s.path in qa else "always"
+        rows.append(f"| `{s.path}` | {s.dtype} | `shards.precision.{s.packed}` ({step:g}) | {fill_of(s.dtype)} | {kept} | {READ_BY[generic]} |")
+    return "\n".join(rows)
+
+
 BLOCKS = {
+    "packing": packing_table,
     "drive": lambda: markdown_table(list(DRIVE.arrays)),
     "fused": lambda: markdown_table(list(FUSED.arrays)),
     "dataset": lambda: markdown_table(list(DATASET.arrays)),

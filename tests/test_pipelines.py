@@ -145,7 +145,7 @@ def test_merged_dataset_is_the_drives_end_to_end(pool_build):
 
 def test_shard_bytes_roundtrip_through_zarr(tmp_path):
     """write_shard produces shards zarr reads, read_shard reads the ones zarr writes."""
-    from gtgen.storage.chunks import compressors
+    from gtgen.storage.codecs import compressors
     from gtgen.storage.shards import read_shard, write_shard
 
     root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")

@@ -73,21 +73,27 @@ def test_dataset_has_every_documented_array_with_its_dtype_and_chunking(dataset,
 def test_dataset_opens_with_xarray(dataset):
     import xarray as xr
 
+    from gtgen.storage.dataset import DatasetStore
+
     ds = xr.open_zarr(str(dataset), group="labels/micro", consolidated=False)
     assert "elevation_m" in ds and ds["elevation_m"].ndim == 3
+    el = ds["elevation_m"][:3].values  # CF-decoded by xarray alone: floats in metres (NaN where unlabelled)
+    assert el.dtype.kind == "f" and np.isfinite(el).any()
+    np.testing.assert_allclose(el, DatasetStore(dataset).grids("labels", "micro", "elevation_m", slice(0, 3)), atol=1e-6)
     ds = xr.open_zarr(str(dataset), group="meta", consolidated=False)
     assert int(ds["t_ns"].shape[0]) > 0
 
 
 def test_region_semantics_in_the_dataset(dataset):
-    import zarr
+    from gtgen.storage.dataset import DatasetStore
 
-    g = zarr.open_group(str(dataset), mode="r")
+    ds = DatasetStore(dataset)
     for r in ("micro", "short"):
-        reg = g[f"labels/{r}/region"][:4]
-        el = g[f"labels/{r}/elevation_m"][:4]
-        dem = g[f"dem/{r}/elevation_m"][:4]
+        reg = ds.grids("labels", r, "region", slice(0, 4))
+        el = ds.grids("labels", r, "elevation_m", slice(0, 4))
+        dem = ds.grids("dem", r, "elevation_m", slice(0, 4))
         assert np.isfinite(el[reg > 0]).all() and np.isnan(el[reg == 0]).all()
-        np.testing.assert_array_equal(el[reg == 3], dem[reg == 3])  # DEM-filled
-        cnt = g[f"labels/{r}/count"][:4]
+        # DEM-filled: the same heights, each within half its step (1 mm labels, 1 cm DEM grid)
+        np.testing.assert_allclose(el[reg == 3], dem[reg == 3], atol=0.0055)
+        cnt = ds.grids("labels", r, "count", slice(0, 4))
         assert (cnt[(reg == 1) | (reg == 2)] > 0).all()

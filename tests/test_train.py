@@ -114,7 +114,7 @@ def test_bad_datasets(dataset, tmp_path):
 
     import zarr
 
-    from gtgen.storage.dataset import ShardWriter
+    from gtgen.storage.dataset_writer import ShardWriter
     from gtgen.storage.schema import DatasetAttrs
     from gtgen.train.data import ShardDataset
 

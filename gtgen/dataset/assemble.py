@@ -28,7 +28,8 @@ from gtgen.geometry import (
     yaw_transform,
 )
 from gtgen.grids import grid_xy, raw_min_z
-from gtgen.storage.dataset import DatasetSample, write_block
+from gtgen.storage.dataset import DatasetSample
+from gtgen.storage.dataset_writer import write_block
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedSample, FusedStore
 

@@ -30,7 +30,7 @@ from gtgen.dem.tiles import default_dem_dir
 from gtgen.errors import ConfigError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
-from gtgen.storage.dataset import ShardWriter
+from gtgen.storage.dataset_writer import ShardWriter
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedStore
 from gtgen.storage.schema import SAMPLES_PER_SHARD, BagRef, DatasetAttrs, DriveEntry, TileEntry
@@ -66,7 +66,8 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
             _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json") as al:
         writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, len(drive.cameras), drive.jpeg_capacity,
-                             scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None)
+                             scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None,
+                             precision=cfg.shards.precision, qa_ranges=cfg.shards.qa_ranges)
         kept = _record(al, writer)
         ctx = Context(drive, fused, al.dem, tmp, cfg)
         with Pool(workers) as pool:

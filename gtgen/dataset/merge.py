@@ -11,7 +11,8 @@ from gtgen.config import GtgenConfig
 from gtgen.dataset.dem_align import dataset_attrs
 from gtgen.errors import GtgenError
 from gtgen.runtime.output import atomic_output
-from gtgen.storage.dataset import DatasetStore, ShardWriter
+from gtgen.storage.dataset import DatasetStore
+from gtgen.storage.dataset_writer import ShardWriter
 from gtgen.storage.schema import DatasetAttrs, DriveEntry
 
 
@@ -34,7 +35,8 @@ class DatasetMerger:
         src = DatasetStore(dataset)
         if self.writer is None:
             self.writer = ShardWriter(self.tmp, self.FIRST_CAPACITY, self.cfg.grids.micro.size, self.cfg.grids.short.size,
-                                      len(src.cameras), src.jpeg_capacity, scans=src.scan_dims)
+                                      len(src.cameras), src.jpeg_capacity, scans=src.scan_dims, precision=self.cfg.shards.precision,
+                                      qa_ranges=self.cfg.shards.qa_ranges)
             self._first = src.info
         elif src.cameras != self._first.cameras:
             raise GtgenError(f"drive {name!r} has the cameras {src.cameras}, the drives before it {self._first.cameras}: a dataset "

@@ -70,6 +70,12 @@ SOURCES: dict[str, tuple[str, tuple[str, str], str | None]] = {
 }
 
 
+def stored_layers(ds: DatasetStore, r: str) -> list[str]:
+    """Return the layers of range ``r`` whose grids the dataset stores (count, last_obs_s
+    and dem_elevation_m are QA grids: only with ``shards.qa_ranges``)."""
+    return [layer for layer, (_, (kind, name), _) in SOURCES.items() if ds.has_grid(kind, r, name)]
+
+
 @dataclass
 class ExportResult:
     """What an export wrote."""
@@ -152,10 +158,12 @@ def _composite(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, si
     """Pick for each pixel the nearest sample that labels it (and that has DEM there)."""
     for block in _blocks(ks):
         region = ds.grids("labels", r, "region", block)
-        dem = ds.grids("dem", r, "elevation_m", block)
+        dem = ds.grids("dem", r, "elevation_m", block) if ds.has_grid("dem", r, "elevation_m") else None
         for n, k in enumerate(block):
             win, cell, d2 = _footprint(m, T[k], size, res)
-            valid = {"label": region[n].ravel() > 0, "dem": np.isfinite(dem[n].ravel())}
+            valid = {"label": region[n].ravel() > 0}
+            if dem is not None:
+                valid["dem"] = np.isfinite(dem[n].ravel())
             for kind, ok in valid.items():
                 take = (cell >= 0) & ok[np.maximum(cell, 0)] & (d2 < m.best[kind][win])
                 m.best[kind][win] = np.where(take, d2, m.best[kind][win])
@@ -167,7 +175,8 @@ def _layers(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, t_s: 
     """Gather each layer's mosaic from the samples the composite picked (``t_s``: each
     sample's time after the drive's first, [s]): the pixels are grouped by sample once (one
     sort), then each sample's arrays are read once."""
-    out = {name: np.full((m.height, m.width), nodata, dtype) for name, (dtype, nodata) in LAYERS.items()}
+    layers = stored_layers(ds, r)
+    out = {name: np.full((m.height, m.width), LAYERS[name][1], LAYERS[name][0]) for name in layers}
     flat = {name: a.reshape(-1) for name, a in out.items()}
     groups = {}
     for kind in ("label", "dem"):
@@ -177,10 +186,11 @@ def _layers(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, t_s: 
         groups[kind] = (pix, np.searchsorted(s[pix], ks, "left"), np.searchsorted(s[pix], ks, "right"), m.cell[kind].reshape(-1))
     n = 0
     for block in _blocks(ks):
-        arrays = {layer: ds.grids(kind, r, name, block) for layer, (_, (kind, name), _) in SOURCES.items()}
+        arrays = {layer: ds.grids(SOURCES[layer][1][0], r, SOURCES[layer][1][1], block) for layer in layers}
         for b, k in enumerate(block):
             add = {None: 0, "z": T[k][2, 3], "t": float(t_s[k])}
-            for layer, (kind, _, plus) in SOURCES.items():
+            for layer in layers:
+                kind, _, plus = SOURCES[layer]
                 pix, lo, hi, cell = groups[kind]
                 p = pix[lo[n]:hi[n]]
                 flat[layer][p] = arrays[layer][b].ravel()[cell[p]] + add[plus]
@@ -188,13 +198,14 @@ def _layers(m: _Mosaic, ds: DatasetStore, r: str, ks: NDArray, T: NDArray, t_s: 
     return out
 
 
-def _open_bands(folder: Path, r: str, width: int, height: int, crs: str, transform: Any) -> dict[str, Any]:
+def _open_bands(folder: Path, r: str, width: int, height: int, crs: str, transform: Any, layers: list[str]) -> dict[str, Any]:
     """Open one tiled GeoTIFF per layer in the scratch ``folder`` for writing window by
     window (empty blocks are not written); ``_to_cog`` turns each into a COG."""
     import rasterio
 
     out = {}
-    for layer, (dtype, nodata) in LAYERS.items():
+    for layer in layers:
+        dtype, nodata = LAYERS[layer]
         ds = rasterio.open(folder / f"{r}.{layer}.tif", "w", driver="GTiff", width=width, height=height, count=1, dtype=dtype,
                            crs=crs, transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
                            compress="DEFLATE", sparse_ok=True, BIGTIFF="IF_SAFER")
@@ -262,7 +273,7 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, o
     if unplaced:
         raise GtgenError(f"drive(s) {unplaced} of '{dataset}' have no georeference (built without a DEM: --no-dem), so there is no "
                          "map to export them into; export geotiff needs drives placed on a DEM (export mcap plays any dataset)")
-    files = [out / name / r / f"{layer}.tif" for name, ks in groups if len(ks) for r in RANGES for layer in LAYERS]
+    files = [out / name / r / f"{layer}.tif" for name, ks in groups if len(ks) for r in RANGES for layer in stored_layers(ds, r)]
     for f in files:  # before any work: nothing of the user's is replaced
         check_replace(f, overwrite)
     res = ExportResult(out)
@@ -280,7 +291,7 @@ def export_geotiff(dataset: Path, out: Path, samples: list[int] | None = None, o
                 for r in RANGES:
                     folder = out / name / r
                     _write_mosaic(Path(scratch), folder, ds, r, cfg.grids.get(r), ks, T, t_s, ds.info.drives[d].crs, overwrite)
-                    res.files += [folder / f"{layer}.tif" for layer in LAYERS]
+                    res.files += [folder / f"{layer}.tif" for layer in stored_layers(ds, r)]
                 res.samples += len(ks)
         except BaseException as err:
             # GDAL reports a full disk as an I/O error of its own
@@ -302,7 +313,7 @@ def _write_mosaic(scratch: Path, folder: Path, ds: DatasetStore, r: str, gr: Any
 
     res_m = gr.resolution_m
     west, north, width, height = _mosaic_grid(T[ks], gr.length_m, res_m)
-    bands = _open_bands(scratch, r, width, height, crs, from_origin(west, north, res_m, res_m))
+    bands = _open_bands(scratch, r, width, height, crs, from_origin(west, north, res_m, res_m), stored_layers(ds, r))
     try:
         for r0, c0, h, w, near in track(_tiles(T, ks, west, north, width, height, res_m, gr.length_m), f"export geotiff: {r}"):
             m = _Mosaic(west + c0 * res_m, north - r0 * res_m, res_m, w, h)
@@ -314,5 +325,5 @@ def _write_mosaic(scratch: Path, folder: Path, ds: DatasetStore, r: str, gr: Any
     finally:
         for b in bands.values():
             b.close()
-    for layer in LAYERS:
+    for layer in stored_layers(ds, r):
         _to_cog(scratch / f"{r}.{layer}.tif", folder / f"{layer}.tif", overwrite)

@@ -7,11 +7,11 @@ Per sample, stamped at its time (``meta/t_ns``), in drive and time order:
   stay small; a drive without a DEM: its odom frame, shifted alike), ``target -> base_link`` (``inputs/T_target_base``) and
   ``base_link -> camera_<name>`` (``inputs/T_base_cam``);
 - ``/gtgen/labels/<range>``: ``grid_map_msgs/GridMap`` in ``target`` with the layers
-  ``elevation``, ``risk``, ``confidence``, ``region``, ``count``, ``last_dt_s`` and
-  ``dem_elevation`` (the aligned DEM), heights relative to the base at t as in the
-  dataset;
-- ``/gtgen/xracer/<range>``: the X-Racer map at t (``elevation``, ``risk``,
-  ``confidence``), same frame;
+  ``elevation``, ``risk``, ``region`` and, where the dataset keeps the QA grids
+  (``shards.qa_ranges``), ``confidence``, ``count``, ``last_dt_s`` and ``dem_elevation``
+  (the aligned DEM), heights relative to the base at t as in the dataset;
+- ``/gtgen/xracer/<range>``: the X-Racer map at t (``elevation``, ``risk``, and
+  ``confidence`` with the QA grids), same frame;
 - ``/gtgen/labels/<range>/grid``: the labels as ``foxglove_msgs/Grid`` (``elevation``,
   ``risk``, ``region``), which Foxglove's 3D panel colours without a plugin;
 - ``/gtgen/camera_<name>/image/compressed``: the stored JPEG file as it is (rectified),
@@ -130,7 +130,7 @@ def _read_block(ds: DatasetStore, ks: NDArray) -> dict:
     (kind, range, layer) and by input name."""
     want = [("labels", r, v) for r in RANGES for v in LABEL_LAYERS.values()]
     want += [("xracer", r, v) for r in RANGES for v in XRACER_LAYERS.values()] + [("dem", r, "elevation_m") for r in RANGES]
-    out: dict = {(kind, r, v): ds.grids(kind, r, v, ks) for kind, r, v in want}
+    out: dict = {(kind, r, v): ds.grids(kind, r, v, ks) for kind, r, v in want if ds.has_grid(kind, r, v)}  # QA grids: with shards.qa_ranges
     out.update({n: ds.input_rows(n, ks) for n in ("T_target_base",) + (("jpeg", "jpeg_nbytes", "K", "T_base_cam") if ds.cameras else ())})
     return out
 
@@ -147,11 +147,12 @@ def _write_sample(fac, topics: _Topics, block: dict, i: int, k: int, t: int, T_m
     topics.write("/tf", "tf2_msgs/msg/TFMessage", t, fac.serialize(fac.tf_message(tfs), "tf2_msgs/msg/TFMessage"))
     for r in RANGES:
         gr = cfg.grids.get(r)
-        layers = {name: block[("labels", r, v)][i].astype(np.float32) for name, v in LABEL_LAYERS.items()}
-        layers["dem_elevation"] = block[("dem", r, "elevation_m")][i].astype(np.float32)
+        layers = {name: block[("labels", r, v)][i].astype(np.float32) for name, v in LABEL_LAYERS.items() if ("labels", r, v) in block}
+        if ("dem", r, "elevation_m") in block:
+            layers["dem_elevation"] = block[("dem", r, "elevation_m")][i].astype(np.float32)
         msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), layers, (0, 0), k)
         topics.write(f"/gtgen/labels/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
-        xr = {name: block[("xracer", r, v)][i].astype(np.float32) for name, v in XRACER_LAYERS.items()}
+        xr = {name: block[("xracer", r, v)][i].astype(np.float32) for name, v in XRACER_LAYERS.items() if ("xracer", r, v) in block}
         msg = fac.gridmap(t, "target", gr.resolution_m, np.zeros(2), xr, (0, 0), k)
         topics.write(f"/gtgen/xracer/{r}", "grid_map_msgs/msg/GridMap", t, fac.serialize(msg, "grid_map_msgs/msg/GridMap"))
         grid = fac.foxglove_grid(t, "target", gr.resolution_m, {n: layers[n] for n in GRID_LAYERS})

@@ -6,7 +6,7 @@ what the plan will likely keep while it reads: every image, every voxel cloud an
 earliest map of each thinning period and, for each frame of the reference sensor (a
 sample time is always one: ``extract.reference``), the latest map stamped at or before it. Maps and voxel clouds are
 written as the encoded chunk files they will be in the store
-(``storage.chunks.encode_chunk``), and once the plan exists the kept ones are moved into
+(``storage.codecs.encode_chunk``), and once the plan exists the kept ones are moved into
 place by rename; images are kept as the camera sent them (``extract.images``: their
 stored form needs the CameraInfo, which may come later) and converted on the pool once
 the plan exists; anything the plan wants but no
@@ -29,7 +29,8 @@ from gtgen.extract.images import Source, write_source
 from gtgen.extract.lidar import compact
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
-from gtgen.storage.chunks import encode_chunk, make_parent
+from gtgen.storage.chunks import make_parent
+from gtgen.storage.codecs import encode_chunk
 from gtgen.storage.schema import MAP_LAYERS
 
 STAGE = "stage"  # folder of the partial store holding staged chunks; removed before the store completes

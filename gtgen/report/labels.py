@@ -94,7 +94,9 @@ def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: 
     reg = ds.grid("labels", r, "region")[k]
     rk = ds.grid("labels", r, "risk")[k]
     xe = ds.grid("xracer", r, "elevation_m")[k]
-    xc = ds.grid("xracer", r, "confidence")[k]
+    # X-Racer's confidence at t where stored (shards.qa_ranges), else the cells it saw
+    # confidently at t: region 1 is those of the latest map stamped <= t, X-Racer's map at t
+    xc_ok = (ds.grid("xracer", r, "confidence")[k] > cfg.fuse.min_conf) if ds.has_grid("xracer", r, "confidence") else reg == codes.OBS_PC
     for code, name in REGIONS.items():
         te = ground if code == codes.UNOBS else seen  # the DEM's truth is the ground; the stack's, what it sees
         m = (reg == code) & np.isfinite(el)
@@ -118,7 +120,7 @@ def _add_sample_errors(ds: DatasetStore, cfg: GtgenConfig, truth, k: int, t_ns: 
     fatal["fn"] += int((~p & q).sum())
     fatal["n"] += int(lab.sum())
     # averaging works: fused vs the single X-Racer map at t on cells both call confident
-    both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & (xc > cfg.fuse.min_conf)
+    both = codes.observed(reg) & np.isfinite(el) & np.isfinite(xe) & xc_ok
     fs["fused_abs"] += float(np.abs(el[both] - seen[both]).sum())
     fs["single_abs"] += float(np.abs(xe[both] - seen[both]).sum())
     fs["n"] += int(both.sum())

@@ -1,8 +1,8 @@
 """Whole Zarr v3 chunks of gtgen's arrays, encoded, written, read and moved as files.
 
 Contract (the Zarr v3 specification, for the arrays gtgen creates): an array's codecs
-are ``bytes`` (little endian) then ``zstd`` with its content checksum (``compressors()``),
-its chunk keys are the default encoding ``c<sep>i<sep>j...`` with separator '/' or '.',
+are one of ``storage/codecs.py``'s (zstd with its checksum; for packed integer arrays
+blosc then crc32c), its chunk keys are the default encoding ``c<sep>i<sep>j...`` with separator '/' or '.',
 and a chunk is stored as the zstd frame of its C-order little-endian bytes in that file
 of a local store. A chunk whose values all equal the fill value is not stored (zarr's
 ``write_empty_chunks`` off); the store's manifest (``storage/integrity.py``) tells such a
@@ -33,29 +33,9 @@ from typing import Any
 import numpy as np
 
 from gtgen.errors import StoreError
-
-ZSTD_LEVEL = 1  # faster to write than zarr's default level, about the same size on elevation maps
-CHECKSUM = True  # each chunk carries zstd's content checksum (4 bytes): a changed byte fails its decode
+from gtgen.storage.codecs import codec_of, decode_chunk, encode_chunk
 
 Check = Callable[[str, Any], None]  # (chunk key, the file's bytes read whole, or None if absent): raises if the store is damaged
-
-
-def compressors() -> list:
-    """Return the codec of every gtgen array (zstd at ``ZSTD_LEVEL`` with its checksum)."""
-    from zarr.codecs import ZstdCodec
-
-    return [ZstdCodec(level=ZSTD_LEVEL, checksum=CHECKSUM)]
-
-
-def encode_chunk(value: np.ndarray) -> bytes:
-    """Return the encoded bytes of one whole chunk holding ``value``, as zarr writes them
-    for an array with ``compressors()``."""
-    from numcodecs import Zstd
-
-    v = np.ascontiguousarray(value)
-    if v.dtype.byteorder == ">":
-        v = v.astype(v.dtype.newbyteorder("<"))
-    return Zstd(level=ZSTD_LEVEL, checksum=CHECKSUM).encode(v)
 
 
 def array_json(arr: Any) -> dict | None:
@@ -69,17 +49,6 @@ def array_json(arr: Any) -> dict | None:
         return None
 
 
-def encodes_like_gtgen(codecs: list[dict], dtype: Any) -> bool:
-    """Whether a zarr v3 codec list (as in ``zarr.json``) stores chunks as :func:`encode_chunk`
-    makes them."""
-    want = [{"name": "bytes", "configuration": {"endian": "little"}},
-            {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": CHECKSUM}}]
-    got = [{"name": c.get("name"), "configuration": c.get("configuration", {})} for c in codecs]
-    if np.dtype(dtype).itemsize == 1:  # single bytes have no endianness
-        got = [c if c["name"] != "bytes" else want[0] for c in got]
-    return got == want
-
-
 def key_separator(meta: dict) -> str | None:
     """Return the default chunk-key separator of a ``zarr.json`` document, None for others."""
     enc = meta.get("chunk_key_encoding", {})
@@ -87,14 +56,15 @@ def key_separator(meta: dict) -> str | None:
     return sep if enc.get("name") == "default" and sep in ("/", ".") else None
 
 
-def check_encoded_chunks(arr: Any) -> str:
-    """Return the chunk-key separator of zarr array ``arr``; raise ValueError unless it
-    stores chunks as :func:`encode_chunk` makes them, in a local store."""
+def check_encoded_chunks(arr: Any) -> tuple[str, str]:
+    """Return the chunk-key separator and codec of zarr array ``arr``; raise ValueError
+    unless it stores chunks as :func:`encode_chunk` makes them, in a local store."""
     meta = array_json(arr)
     sep = key_separator(meta) if meta else None
-    if meta is None or sep is None or not encodes_like_gtgen(meta.get("codecs", []), arr.dtype):
+    codec = codec_of(meta.get("codecs", []), arr.dtype) if meta else None
+    if meta is None or sep is None or codec is None:
         raise ValueError(f"array '{arr.path}' does not store chunks as gtgen encodes them: {meta and meta.get('codecs')}")
-    return sep
+    return sep, codec
 
 
 def chunk_key(path: str, coords: tuple[int, ...], sep: str = "/") -> str:
@@ -140,11 +110,12 @@ def is_fill(value: np.ndarray, fill: Any) -> bool:
     return bool((value == f).all())
 
 
-def encode_row(value: np.ndarray, dtype: Any, row_shape: tuple[int, ...], fill: Any) -> bytes | None:
-    """Return the encoded chunk holding one row ``value`` of an array of ``dtype`` and
-    ``fill`` whose chunks are single rows of ``row_shape``; None where it is all fill."""
+def encode_row(value: np.ndarray, dtype: Any, row_shape: tuple[int, ...], fill: Any, codec: str = "zstd") -> bytes | None:
+    """Return the encoded chunk (of ``codec``) holding one row ``value`` of an array of
+    ``dtype`` and ``fill`` whose chunks are single rows of ``row_shape``; None where it is
+    all fill."""
     v = np.asarray(value, dtype).reshape(1, *row_shape)
-    return None if is_fill(v, fill) else encode_chunk(v)
+    return None if is_fill(v, fill) else encode_chunk(v, codec)
 
 
 @dataclass(frozen=True)
@@ -156,19 +127,19 @@ class Encoded:
     dtype: np.dtype
     shape: tuple[int, ...]
     fill: Any
+    codec: str = "zstd"
 
     def decode(self) -> np.ndarray:
         """Return the chunk's values."""
         if self.data is None:
             return np.full(self.shape, self.fill, self.dtype)
-        from numcodecs import Zstd
+        return decode_chunk(self.data, self.dtype, self.shape, self.codec)
 
-        return Zstd().decode(self.data, out=np.empty(self.shape, self.dtype.newbyteorder("<"))).astype(self.dtype, copy=False)
-
-    def same_layout(self, dtype: Any, fill: Any) -> bool:
-        """Whether these bytes are a valid chunk of an array of ``dtype`` and ``fill``."""
+    def same_layout(self, dtype: Any, fill: Any, codec: str = "zstd") -> bool:
+        """Whether these bytes are a valid chunk of an array of ``dtype``, ``fill`` and ``codec``."""
         a, b = np.asarray(self.fill, self.dtype), np.asarray(fill, dtype)
-        return np.dtype(dtype) == self.dtype and bool(a == b or (a.dtype.kind == "f" and np.isnan(a) and np.isnan(b)))
+        return (np.dtype(dtype) == self.dtype and codec == self.codec
+                and bool(a == b or (a.dtype.kind == "f" and np.isnan(a) and np.isnan(b))))
 
 
 class ChunkFiles:
@@ -186,10 +157,11 @@ class ChunkFiles:
         self.dtype = np.dtype(arr.dtype)
         self.fill = arr.fill_value
         self.sep: str | None = None
+        self.codec = "zstd"
         root = getattr(arr.store, "root", None)
         if root is not None and tuple(arr.chunks) == (1, *self.row_shape):
             try:
-                self.sep = check_encoded_chunks(arr)
+                self.sep, self.codec = check_encoded_chunks(arr)
             except ValueError:
                 pass
         self.root = Path(root) if root is not None else None
@@ -216,7 +188,7 @@ class ChunkFiles:
             data = None
         if self.check is not None:
             self.check(self._key(k), data)
-        return Encoded(data, self.dtype, (1, *self.row_shape), self.fill)
+        return Encoded(data, self.dtype, (1, *self.row_shape), self.fill, self.codec)
 
     def read(self, k: int) -> np.ndarray:
         """Return row ``k`` (a new, writable array); StoreError if its file is damaged."""
@@ -234,7 +206,7 @@ class ChunkFiles:
         if not self.direct:
             self.arr[int(k)] = value
             return
-        data = encode_row(value, self.dtype, self.row_shape, self.fill)
+        data = encode_row(value, self.dtype, self.row_shape, self.fill, self.codec)
         file = self._file(k)
         if data is None:
             file.unlink(missing_ok=True)
@@ -337,10 +309,11 @@ class RangeReader:
         self.arr = arr
         self.check = check
         self.sep: str | None = None
+        self.codec = "zstd"
         root = getattr(arr.store, "root", None)
         if root is not None and tuple(arr.chunks[1:]) == tuple(arr.shape[1:]):
             try:
-                self.sep = check_encoded_chunks(arr)
+                self.sep, self.codec = check_encoded_chunks(arr)
             except ValueError:
                 pass
         self.root = Path(root) if root is not None else None
@@ -356,7 +329,7 @@ class RangeReader:
                 data = None
             if self.check is not None:
                 self.check(key, data)
-            self._last = (i, Encoded(data, np.dtype(self.arr.dtype), (self.c, *self.arr.shape[1:]), self.arr.fill_value).decode())
+            self._last = (i, Encoded(data, np.dtype(self.arr.dtype), (self.c, *self.arr.shape[1:]), self.arr.fill_value, self.codec).decode())
         return self._last[1]
 
     def __call__(self, a: int, b: int) -> np.ndarray:

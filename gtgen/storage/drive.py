@@ -13,7 +13,8 @@ from numpy.typing import NDArray
 
 from gtgen.config import RANGES, GtgenConfig, stored_config
 from gtgen.geometry import quat_to_yaw
-from gtgen.storage.chunks import check_encoded_chunks, chunk_file, encode_chunk, make_parent, place_chunk
+from gtgen.storage.chunks import check_encoded_chunks, chunk_file, make_parent, place_chunk
+from gtgen.storage.codecs import encode_chunk
 from gtgen.storage.schema import DRIVE, MAP_LAYERS
 from gtgen.storage.stores import Rows, Store, StoreWriter
 
@@ -272,7 +273,7 @@ class DriveWriter(StoreWriter):
         chunk file each, as zarr would write it)."""
         path = "samples/jpeg"
         if path not in self._seps:
-            self._seps[path] = check_encoded_chunks(self.root[path])
+            self._seps[path] = check_encoded_chunks(self.root[path])[0]
         data = encode_chunk(row.reshape(1, 1, -1))
         for s in samples:
             f = chunk_file(self.path, path, (s, camera, 0), self._seps[path])
@@ -295,7 +296,7 @@ class DriveWriter(StoreWriter):
         """Make the chunks ``coords`` of ``path`` hold staged chunk file ``src`` (the last
         use takes the file, earlier ones link to it)."""
         if path not in self._seps:
-            self._seps[path] = check_encoded_chunks(self.root[path])
+            self._seps[path] = check_encoded_chunks(self.root[path])[0]
         for n, c in enumerate(coords):
             place_chunk(src, chunk_file(self.path, path, c, self._seps[path]), move=n == len(coords) - 1, made=self._made)
 

@@ -2,7 +2,8 @@
 
 Zarr reads a missing chunk as its fill value, and gtgen does not store chunks that are
 all fill, so a deleted file cannot be told from "no data" by zarr alone; and a chunk's own
-checksum (zstd's, of every chunk and inner chunk; the CRC32C of a shard's index) covers
+checksum (zstd's, or the crc32c codec's of a packed array, of every chunk and inner chunk;
+the CRC32C of a shard's index) covers
 its bytes, not its place, so two chunks swapped, one copied over another or one left from
 an earlier write decode as data. Every gtgen store therefore records, as its last write,
 a manifest of every file it holds: each chunk or shard file's size and CRC32C, the CRC32C
@@ -14,7 +15,7 @@ Readers check through :class:`Manifest` what they read: a file read whole (every
 file, a shard read whole, and every file of at most ``SMALL_FILE`` bytes, such as the
 shards of the per-sample metadata) against its size and CRC32C; a larger shard read in
 part against its size and its index's CRC32C (a shard from elsewhere carries another
-index: its inner chunks are of other sizes), each inner chunk by its zstd checksum. A chunk the manifest lists
+index: its inner chunks are of other sizes), each inner chunk by its own checksum. A chunk the manifest lists
 but the store lacks, or that holds other bytes, is a :class:`DamagedStoreError` naming the
 array, the rows (samples) it holds and the command that rebuilds the store; a chunk the
 manifest does not list is all fill, as zarr says. ``verify`` checks a whole store: every

@@ -131,16 +131,16 @@ _DATASET: list[ArraySpec] = []
 for _r in RANGES:
     _n = "n_m" if _r == "micro" else "n_s"
     _DATASET += [
-        ArraySpec(f"labels/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "fused elevation (regions 1, 2), aligned DEM (region 3)"),
-        ArraySpec(f"labels/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "latest confident X-Racer risk in the window"),
-        ArraySpec(f"labels/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "max X-Racer confidence in the window"),
+        ArraySpec(f"labels/{_r}/elevation_m", "int32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "fused elevation (regions 1, 2), aligned DEM (region 3)", "elevation_m"),
+        ArraySpec(f"labels/{_r}/risk", "uint16", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "latest confident X-Racer risk in the window", "fraction"),
+        ArraySpec(f"labels/{_r}/confidence", "uint16", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "max X-Racer confidence in the window", "fraction"),
         ArraySpec(f"labels/{_r}/region", "uint8", f"(S, {_n}, {_n})", "code", _TGT, "0", "0 no label, 1 observed past/current, 2 observed future, 3 unobserved (DEM)"),
         ArraySpec(f"labels/{_r}/count", "uint16", f"(S, {_n}, {_n})", "maps", _TGT, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
-        ArraySpec(f"labels/{_r}/last_dt_s", "float32", f"(S, {_n}, {_n})", "s, rel. t", _TGT, "NaN", "time of the last observation minus t"),
-        ArraySpec(f"xracer/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "X-Racer map at t (the baseline row)"),
-        ArraySpec(f"xracer/{_r}/risk", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer risk at t"),
-        ArraySpec(f"xracer/{_r}/confidence", "float32", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer confidence at t"),
-        ArraySpec(f"dem/{_r}/elevation_m", "float32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "aligned DEM, bilinear"),
+        ArraySpec(f"labels/{_r}/last_dt_s", "int32", f"(S, {_n}, {_n})", "s, rel. t", _TGT, "NaN", "time of the last observation minus t", "time_s"),
+        ArraySpec(f"xracer/{_r}/elevation_m", "int32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "X-Racer map at t (the baseline row)", "elevation_m"),
+        ArraySpec(f"xracer/{_r}/risk", "uint16", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer risk at t", "fraction"),
+        ArraySpec(f"xracer/{_r}/confidence", "uint16", f"(S, {_n}, {_n})", "0..1", _TGT, "NaN", "X-Racer confidence at t", "fraction"),
+        ArraySpec(f"dem/{_r}/elevation_m", "int32", f"(S, {_n}, {_n})", "m, rel. base z at t", _TGT, "NaN", "aligned DEM, bilinear", "dem_m"),
     ]
 _DATASET += [
     ArraySpec("inputs/jpeg", "uint8", "(S, C, B)", "JPEG file", "camera (rectified)", "0", "only with cameras: each camera's JPEG file in bytes [0, jpeg_nbytes), zeros after (see Images), in the order of the attribute 'cameras'"),
@@ -148,10 +148,10 @@ _DATASET += [
     ArraySpec("inputs/K", "float64", "(S, C, 3, 3)", "px", "camera (rectified)", "0", "only with cameras: intrinsics of the stored (rectified) image, at the size its JPEG header gives"),
     ArraySpec("inputs/T_base_cam", "float64", "(S, C, 4, 4)", "m", "base <- camera optical", "0", "only with cameras: camera extrinsics"),
     ArraySpec("inputs/T_target_base", "float64", "(S, 4, 4)", "m", "target <- base", "0", "the base's roll and pitch in the target frame"),
-    ArraySpec("inputs/raw_elevation_m", "float32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell"),
+    ArraySpec("inputs/raw_elevation_m", "int32", "(S, n_s, n_s)", "m, rel. base z at t", _TGT, "NaN", "lowest voxel-map point per short cell", "points_m"),
     ArraySpec("inputs/voxel_offsets", "int64", "(S + 1,)", "-", "-", "0", "sample s owns voxel_points_m[offsets[s]:offsets[s+1]]"),
-    ArraySpec("inputs/voxel_points_m", "float32", "(P, 3)", "m", _TGT, "0", "voxel map points, flat"),
-    ArraySpec("inputs/scan_points_m", "float32", "(S, P_s, 3)", "m", _TGT, "NaN", "only with raw scans: the N-scan input, the last N_s scans of every lidar at least shards.scan_travel_m apart within the short grid, voxel-filtered (first point per shards.scan_voxel_m voxel, newest scan first), in that order; the newest P_s kept"),
+    ArraySpec("inputs/voxel_points_m", "int32", "(P, 3)", "m", _TGT, "NaN", "voxel map points, flat", "points_m"),
+    ArraySpec("inputs/scan_points_m", "int32", "(S, P_s, 3)", "m", _TGT, "NaN", "only with raw scans: the N-scan input, the last N_s scans of every lidar at least shards.scan_travel_m apart within the short grid, voxel-filtered (first point per shards.scan_voxel_m voxel, newest scan first), in that order; the newest P_s kept", "points_m"),
     ArraySpec("inputs/scan_counts", "int32", "(S, N_s)", "-", "-", "0", "only with raw scans: points of the scans of age < a + 1 (a prefix of scan_points_m); the filtered last n scans are rows [0, scan_counts[n - 1])"),
     ArraySpec("meta/t_ns", "int64", "(S,)", "ns", "-", "0", "sample time"),
     ArraySpec("meta/drive", "uint16", "(S,)", "-", "-", "0", "index into the attribute 'drives'"),
@@ -190,9 +190,32 @@ for _g, _n in [(f"{k}/{r}", "n_m" if r == "micro" else "n_s") for k in ("labels"
     ]
 for _g in ("labels/micro", "labels/short", "xracer/micro", "xracer/short", "dem/micro", "dem/short", "inputs", "meta"):
     COORDS.append(ArraySpec(f"{_g}/sample", "int64", "(S,)", "ns since 1970 (CF)", "-", "-", "sample time (= meta/t_ns), the dimension coordinate sample"))
-DATASET = StoreFormat("gtgen-dataset", 8, tuple(_DATASET + COORDS), "gtgen dem-align",
-                      "rebuild it from its bags with 'gtgen build DRIVES... -o OUT --overwrite' (or gtgen extract, fuse and "
-                      "dem-align, each with --overwrite): version 8 stores the images of any camera rig and datasets without a DEM")
+DATASET = StoreFormat("gtgen-dataset", 9, tuple(_DATASET + COORDS), "gtgen dem-align",
+                      "rebuild it with 'gtgen dem-align --overwrite' (or 'gtgen build DRIVES... -o OUT --overwrite'): version 9 "
+                      "stores grids and points as CF packed integers at the steps of shards.precision")
+
+# the grids only quality checks read (gtgen viz, export, report's comparisons; never train
+# or eval), stored only for the ranges in shards.qa_ranges (none by default): the DEM's
+# heights where the label needs them are its region-3 cells already
+QA_GRIDS = {"labels": ("confidence", "count", "last_dt_s"), "xracer": ("confidence",), "dem": ("elevation_m",)}
+
+
+# what reads each per-sample grid and point array of a dataset (data_schema.md's packing table)
+READ_BY = {
+    "labels/{r}/elevation_m": "train, eval, report, viz, export", "labels/{r}/risk": "train, eval, report, viz, export",
+    "labels/{r}/region": "train, eval, report, viz, export", "labels/{r}/confidence": "QA: viz, export mcap",
+    "labels/{r}/count": "QA: export", "labels/{r}/last_dt_s": "QA: export", "xracer/{r}/elevation_m": "train, eval (X-Racer row), report, viz",
+    "xracer/{r}/risk": "train, eval (X-Racer row), export mcap", "xracer/{r}/confidence": "QA: report (X-Racer's confident cells; else region 1), export mcap",
+    "dem/{r}/elevation_m": "QA: viz, export (its heights the label needs are region 3's already)",
+    "inputs/raw_elevation_m": "train, eval (raw-grid rows)", "inputs/voxel_points_m": "train, eval, export mcap",
+    "inputs/scan_points_m": "train (train.geometry: scans)",
+}
+
+
+def qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
+    """Return the paths of the QA grids of ``ranges``."""
+    return tuple(f"{k}/{r}/{layer}" for k, layers in QA_GRIDS.items() for r in ranges for layer in layers)
+
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
 # are there only when the drives have raw scans, the images' only when they have cameras

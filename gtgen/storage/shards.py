@@ -25,7 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from gtgen.storage.chunks import array_json, chunk_file, chunk_key, encodes_like_gtgen
+from gtgen.storage.chunks import array_json, chunk_file, chunk_key
+from gtgen.storage.codecs import codec_of, encodes_like_gtgen
+from gtgen.storage.packing import CF_KEYS
 
 _EMPTY = 2**64 - 1
 
@@ -33,7 +35,8 @@ _EMPTY = 2**64 - 1
 def sample_layout(arr: Any) -> dict | None:
     """Return what must match for byte copies of ``arr``'s samples (from its ``zarr.json``),
     or None unless it is sharded along axis 0 with one sample per inner chunk, whole rows,
-    the index at the end with bytes + crc32c index codecs, and '/' chunk keys."""
+    the index at the end with bytes + crc32c index codecs, and '/' chunk keys. Packed
+    arrays' bytes mean the same values only at the same steps (their CF attributes)."""
     meta = array_json(arr)
     codecs = (meta or {}).get("codecs") or []
     if len(codecs) != 1 or codecs[0].get("name") != "sharding_indexed":
@@ -47,8 +50,9 @@ def sample_layout(arr: Any) -> dict | None:
     enc = meta.get("chunk_key_encoding", {})
     if enc.get("name") != "default" or enc.get("configuration", {}).get("separator", "/") != "/":
         return None
+    attrs = meta.get("attributes", {})
     return {"dtype": meta["data_type"], "fill": str(meta["fill_value"]), "grid": meta["chunk_grid"], "codecs": codecs,
-            "tail": list(arr.shape[1:])}
+            "tail": list(arr.shape[1:]), "packing": [attrs.get(k) for k in CF_KEYS]}
 
 
 def samples_per_shard(layout: dict) -> int:
@@ -155,6 +159,7 @@ class SampleReader:
             self.root, self.path, self.ndim = Path(root), arr.path, arr.ndim
             self.n = samples_per_shard(layout)
             self.shape, self.dtype, self.fill = tuple(arr.shape[1:]), np.dtype(arr.dtype), arr.fill_value
+            self.codec = codec_of(layout["codecs"][0]["configuration"]["codecs"], arr.dtype) or "zstd"
             self._index: dict[int, np.ndarray | None] = {}  # the index entries of each large shard read so far
             self._small: set[int] = set()
 
@@ -207,4 +212,4 @@ class SampleReader:
         from gtgen.storage.chunks import Encoded
 
         s, i = divmod(int(k), self.n)
-        return Encoded(self._chunk(s, i), self.dtype, (1, *self.shape), self.fill).decode()[0]
+        return Encoded(self._chunk(s, i), self.dtype, (1, *self.shape), self.fill, self.codec).decode()[0]

@@ -22,9 +22,16 @@ class ArraySpec:
     frame: str
     fill: str
     doc: str
+    # the ``shards.precision`` key whose step the values are stored at as CF packed
+    # integers of ``dtype`` (``storage/packing.py``); "" for an array stored as it is
+    packed: str = ""
 
     def fill_value(self) -> object:
-        """Return the fill value as a Python object for zarr."""
+        """Return the fill value as a Python object for zarr (a packed array's NaN sentinel)."""
+        if self.packed:
+            from gtgen.storage.packing import fill_of
+
+            return fill_of(self.dtype)
         if self.fill == "NaN":
             return float("nan")
         if self.fill in ("-", ""):

@@ -29,7 +29,9 @@ from numpy.typing import NDArray
 
 from gtgen.errors import GtgenError, StoreError
 from gtgen.runtime.output import partials
-from gtgen.storage.chunks import ChunkFiles, RangeReader, compressors
+from gtgen.storage.checked import checked_store
+from gtgen.storage.chunks import ChunkFiles, RangeReader
+from gtgen.storage.codecs import compressors
 from gtgen.storage.integrity import (
     MANIFEST,
     METADATA,
@@ -41,6 +43,7 @@ from gtgen.storage.integrity import (
     rows_text,
     write_manifest,
 )
+from gtgen.storage.packing import Packing, packing_of
 from gtgen.storage.schema import StoreFormat
 from gtgen.storage.shards import SampleReader
 from gtgen.storage.specs import ArraySpec, dimension_names
@@ -54,80 +57,6 @@ def jsonable(obj: Any) -> Any:
 def store_attrs(fmt: StoreFormat, **attrs: Any) -> dict[str, Any]:
     """Return the attributes of a complete store of ``fmt`` with ``attrs`` (as JSON types)."""
     return jsonable({"store": fmt.kind, "version": fmt.version, "complete": True, **attrs})
-
-
-def _checked_store_class() -> type:
-    import zarr
-    from zarr.abc.store import SuffixByteRequest
-    from zarr.core.codec_pipeline import BatchedCodecPipeline
-    from zarr.registry import fully_qualified_name, register_pipeline
-    from zarr.storage import LocalStore
-
-    class CheckedStore(LocalStore):
-        """A read-only local zarr store whose every chunk read is checked against the
-        store's manifest: a listed chunk that is missing, of another size or (read whole)
-        of other bytes, or a shard index that is another, raises DamagedStoreError instead
-        of reading as fill or as another chunk's data."""
-
-        def __init__(self, root: Path, manifest: Manifest) -> None:
-            super().__init__(str(root), read_only=True)
-            self.manifest = manifest
-
-        async def get(self, key: str, prototype: Any, byte_range: Any = None) -> Any:
-            if byte_range is not None and key in self.manifest.files:
-                self.manifest.check_part(key)
-            buf = await super().get(key, prototype, byte_range)
-            if byte_range is None:
-                self.manifest.check(key, None if buf is None else buf.as_numpy_array())
-            elif buf is not None and isinstance(byte_range, SuffixByteRequest) and key in self.manifest.indexes:
-                self.manifest.check_index(key, buf.as_numpy_array())  # a shard's index, read before its inner chunks
-            return buf
-
-        def __reduce__(self) -> tuple:
-            return (_reopen_checked, (str(self.root), self.manifest.where))
-
-    class CheckedPipeline(BatchedCodecPipeline):
-        """zarr's own codec pipeline, except that a chunk of a CheckedStore that does not
-        decode (its zstd checksum, its shard index's CRC32C) is the DamagedStoreError naming
-        its array and rows, for every zarr read of the store: xarray's, the group's."""
-
-        async def read(self, batch_info: Any, out: Any, drop_axes: tuple[int, ...] = ()) -> None:
-            batch_info = list(batch_info)
-            try:
-                await super().read(batch_info, out, drop_axes)
-            except GtgenError:
-                raise
-            except Exception:  # noqa: BLE001 - zstd and the index check raise several kinds
-                store = getattr(batch_info[0][0], "store", None) if batch_info else None  # a shard's inner chunks have none
-                if not isinstance(store, CheckedStore):
-                    raise
-                for item in batch_info:  # which chunk file it was
-                    try:
-                        await super().read([item], out, drop_axes)
-                    except Exception as one:  # noqa: BLE001 - zstd and the index check raise several kinds
-                        raise store.manifest.damaged_chunk(item[0].path, f"does not decode ({type(one).__name__}: {one})".splitlines()[0]) from one
-                raise
-
-    # the default pipeline's place, unless the user chose another one (zarrs, say)
-    if zarr.config.get("codec_pipeline.path") == fully_qualified_name(BatchedCodecPipeline):
-        register_pipeline(CheckedPipeline)
-        zarr.config.set({"codec_pipeline.path": fully_qualified_name(CheckedPipeline)})
-    return CheckedStore
-
-
-_CHECKED: type | None = None
-
-
-def checked_store(root: Path, manifest: Manifest) -> Any:
-    """Return a read-only zarr store of ``root`` whose chunk reads ``manifest`` checks."""
-    global _CHECKED
-    if _CHECKED is None:
-        _CHECKED = _checked_store_class()
-    return _CHECKED(root, manifest)
-
-
-def _reopen_checked(root: str, where: Where) -> Any:
-    return checked_store(Path(root), Manifest(Path(root), where))
 
 
 def _name(fmt: StoreFormat) -> str:
@@ -203,14 +132,27 @@ class Store:
                 raise self.where.damaged(f"array '{path}' cannot be opened ({err})".splitlines()[0]) from err
         return self._arrays[path]
 
+    def packing(self, path: str) -> Packing | None:
+        """Return how array ``path`` is packed (its CF attributes; None: stored as it is)."""
+        cache = self.__dict__.setdefault("_packings", {})
+        if path not in cache:
+            arr = self.array(path)
+            cache[path] = packing_of(arr.attrs, arr.dtype)
+        return cache[path]
+
     def shape(self, path: str) -> tuple[int, ...]:
         """Return the shape of array ``path``."""
         return tuple(int(n) for n in self.array(path).shape)
 
     def read(self, path: str, rows: Any = None) -> NDArray:
         """Return array ``path`` whole, or its ``rows`` (a slice, or sorted indices: one
-        zarr call for all of them, a slice when consecutive). The chunk files the read
-        needs are checked against the manifest first."""
+        zarr call for all of them, a slice when consecutive), as floats where it is packed.
+        The chunk files the read needs are checked against the manifest first."""
+        out = self._read(path, rows)
+        pk = self.packing(path)
+        return out if pk is None else pk.unpack(out)
+
+    def _read(self, path: str, rows: Any) -> NDArray:
         arr = self.array(path)
         n0 = int(arr.shape[0]) if arr.ndim else 0
         per = int((getattr(arr, "shards", None) or arr.chunks)[0]) if arr.ndim else 1
@@ -241,12 +183,15 @@ class Store:
         return Rows(self, path)
 
     def ranges(self, path: str) -> Callable[[int, int], NDArray]:
-        """Return ``f(a, b)`` -> rows a to b of array ``path`` (chunked along axis 0 only)."""
+        """Return ``f(a, b)`` -> rows a to b of array ``path`` (chunked along axis 0 only),
+        as floats where it is packed."""
         reader = RangeReader(self.array(path), check=self.manifest.check)
+        pk = self.packing(path)
 
         def get(a: int, b: int) -> NDArray:
             try:
-                return reader(a, b)
+                rows = reader(a, b)
+                return rows if pk is None else pk.unpack(rows)
             except GtgenError:
                 raise
             except Exception as err:  # noqa: BLE001 - zstd raises several kinds
@@ -288,11 +233,12 @@ def _reopen(cls: type, path: str) -> Store:
 class Rows:
     """Rows (axis-0 indices) of one array of a store, each read from its chunk or shard
     file where the layout allows (no zarr call; ``storage/chunks.py``, ``shards.py``),
-    else through zarr; checked against the store's manifest."""
+    else through zarr; checked against the store's manifest; as floats where packed."""
 
     def __init__(self, store: Store, path: str) -> None:
         arr = store.array(path)
         self.store, self.path = store, path
+        self.packing = store.packing(path)
         check = store.manifest.check
         if getattr(arr, "shards", None):
             self._shard: SampleReader | None = SampleReader(arr, check=check, check_size=store.manifest.check_size,
@@ -303,15 +249,17 @@ class Rows:
 
     def __getitem__(self, k: int) -> NDArray:
         try:
-            return self._shard[int(k)] if self._shard is not None else self._files.read(int(k))  # type: ignore[union-attr]
+            row = self._shard[int(k)] if self._shard is not None else self._files.read(int(k))  # type: ignore[union-attr]
+            return row if self.packing is None else self.packing.unpack(row)
         except GtgenError:
             raise
         except Exception as err:  # noqa: BLE001 - zstd and numpy raise several kinds
             raise self.store.damaged(self.path, [int(k)], err) from err
 
     def encoded(self, k: int) -> Any:
-        """Return row ``k`` as stored (``chunks.Encoded``) where it is a chunk file, else its values."""
-        if self._files is not None and self._files.direct:
+        """Return row ``k`` as stored (``chunks.Encoded``) where it is a chunk file of an
+        array stored as it is, else its values."""
+        if self._files is not None and self._files.direct and self.packing is None:
             return self._files.encoded(int(k))
         return self[k]
 
@@ -336,14 +284,17 @@ class StoreWriter:
         return self.fmt.spec(path)
 
     def create(self, path: str, shape: tuple[int, ...], chunks: tuple[int, ...] | None = None,
-               shards: tuple[int, ...] | None = None, flat: bool = False, **kw: Any) -> Any:
+               shards: tuple[int, ...] | None = None, flat: bool = False, packing: Packing | None = None, **kw: Any) -> Any:
         """Create array ``path`` with its spec's dtype, fill and dimension names and gtgen's
-        codec; ``flat`` keys its chunks 'c.i.j...' (one folder)."""
+        codec; ``flat`` keys its chunks 'c.i.j...' (one folder); ``packing`` (of a packed
+        spec) goes into its CF attributes."""
         sp = self.spec(path)
+        if packing is not None:
+            kw["attributes"] = {**kw.get("attributes", {}), **packing.attrs()}
         chunks = chunks or tuple(max(1, int(s)) for s in shape)
         keys = {"name": "default", "separator": "." if flat else "/"}
         return self.root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, shards=shards,
-                                      fill_value=sp.fill_value(), compressors=compressors(), chunk_key_encoding=keys,
+                                      fill_value=sp.fill_value(), compressors=compressors("blosc" if packing else "zstd"), chunk_key_encoding=keys,
                                       dimension_names=dimension_names(sp), **kw)
 
     def write(self, path: str, value: Any, chunks: tuple[int, ...] | None = None) -> Any:
