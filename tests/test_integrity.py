@@ -306,6 +306,47 @@ def test_outputs_never_replace_what_gtgen_did_not_write(drive_dir, drive_store, 
     assert owned(tmp_path / "mine.mcap")
 
 
+def test_an_output_over_an_input_or_a_gtgen_output_of_another_kind_is_refused(drive_store, fused_store, dataset, tmp_path):
+    """The second campaign's LOST class: the output named is the command's own input, or a
+    gtgen file or store of another kind (a checkpoint, a figure, a store of another stage):
+    one line, nothing replaced; --overwrite still replaces it."""
+    import hashlib
+    import shutil
+
+    def digest(path: Path) -> str:
+        files = sorted(f for f in path.rglob("*") if f.is_file()) if path.is_dir() else [path]
+        return hashlib.sha256(b"".join(f.read_bytes() for f in files)).hexdigest()
+
+    drive = tmp_path / "drive.zarr"
+    shutil.copytree(drive_store, drive)
+    before = digest(drive)
+    p = run_cli("fuse", drive, "-o", drive, "-c", SMALL, cwd=tmp_path)
+    assert p.returncode == 1 and "is an input of this command" in _one_line(p) and digest(drive) == before
+    fused = tmp_path / "fused.zarr"
+    shutil.copytree(fused_store, fused)
+    before = digest(fused)
+    p = run_cli("viz", dataset, "-n", "1", "-o", tmp_path / "fig.png", cwd=tmp_path)
+    assert p.returncode == 0
+    png = (tmp_path / "fig.png").read_bytes()
+    # a figure over a store, a store over a figure, and a store of another stage over a store
+    p = run_cli("viz", dataset, "-n", "1", "-o", fused, cwd=tmp_path)
+    assert p.returncode == 1 and digest(fused) == before
+    p = run_cli("export", "mcap", dataset, "-o", tmp_path / "x.mcap", cwd=tmp_path)
+    assert p.returncode == 0
+    mcap = (tmp_path / "x.mcap").read_bytes()
+    p = run_cli("viz", dataset, "-n", "1", "-o", tmp_path / "x.mcap", cwd=tmp_path)
+    assert p.returncode == 1 and "holds a gtgen MCAP file" in _one_line(p) and (tmp_path / "x.mcap").read_bytes() == mcap
+    p = run_cli("fuse", drive_store, "-o", fused.parent / "other.zarr", "-c", SMALL, cwd=tmp_path)
+    assert p.returncode == 0
+    shutil.copytree(dataset, tmp_path / "ds.zarr")
+    before = digest(tmp_path / "ds.zarr")
+    p = run_cli("fuse", drive_store, "-o", tmp_path / "ds.zarr", "-c", SMALL, cwd=tmp_path)
+    assert p.returncode == 1 and "holds a gtgen dataset store" in _one_line(p) and digest(tmp_path / "ds.zarr") == before
+    p = run_cli("viz", dataset, "-n", "1", "-o", tmp_path / "x.mcap", "--overwrite", cwd=tmp_path)
+    assert p.returncode == 0 and (tmp_path / "x.mcap").read_bytes()[:4] == b"\x89PNG"
+    assert png[:4] == b"\x89PNG"
+
+
 def test_export_geotiff_writes_into_a_folder_and_leaves_the_rest(dataset, tmp_path):
     qgis = tmp_path / "qgis"
     qgis.mkdir()

@@ -149,6 +149,36 @@ def check_replace(path: Path, overwrite: bool = False, file: bool = False) -> No
                             "or pass --overwrite to replace it")
 
 
+def output_kind(path: Path) -> str:
+    """Return what ``path`` holds, to tell one gtgen output from another: a store's kind,
+    else the file's format by its first bytes (a checkpoint is a zip)."""
+    if path.is_dir():
+        kind = store_kind(path)
+        return f"{kind.removeprefix('gtgen-')} store" if kind else "folder"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError:
+        return "file"
+    for magic, kind in ((b"\x89PNG", "PNG image"), (b"PK", "checkpoint (zip)"), (b"\x89MCAP", "MCAP file"),
+                        (b"II*\x00", "GeoTIFF"), (b"MM\x00*", "GeoTIFF"), (b"{", "JSON file")):
+        if head.lstrip().startswith(magic):
+            return kind
+    return "file"
+
+
+def check_same_kind(path: Path, new: Path, overwrite: bool = False) -> None:
+    """Raise OutputExistsError if ``path`` holds a gtgen output of another kind than the
+    one written at ``new`` (unless ``overwrite``): a command's output over a checkpoint, a
+    store of another stage or a figure is refused, not replaced."""
+    if overwrite or not (path.exists() or path.is_symlink()):
+        return
+    old, made = output_kind(path), output_kind(new)
+    if old != made:
+        raise OutputExistsError(f"output '{path}' holds a gtgen {old}, and this command writes a {made}; nothing was replaced: "
+                                "choose another output or pass --overwrite to replace it")
+
+
 def remove(path: Path) -> None:
     """Remove a file or folder if it exists."""
     if path.is_dir() and not path.is_symlink():
@@ -308,6 +338,7 @@ def atomic_output(path: Path, overwrite: bool = False, file: bool = False) -> It
                 if not (tmp.exists() or tmp.is_symlink()):
                     raise GtgenError(f"nothing was written for '{path}'")
                 check_replace(path, overwrite, file)  # what appeared there meanwhile is not ours to replace either
+                check_same_kind(path, tmp, overwrite)
                 _replace(tmp, path, temps.name("old"))
             except OSError as err:
                 full = _no_space(err, path)
@@ -403,9 +434,11 @@ def stage_output(path: Path, reads: Sequence[Path] = (), overwrite: bool = False
     shared lock on each input in ``reads``; the output appears only when the block succeeds
     (see ``atomic_output`` for what it may replace; ``file``: the output is a file)."""
     check_replace(path, overwrite, file)  # before any work
+    for p in reads:
+        if Path(p).resolve() == Path(path).resolve():
+            raise OutputExistsError(f"output '{path}' is an input of this command; choose another output")
     with contextlib.ExitStack() as stack:
         stack.enter_context(lock(path))
         for p in reads:
-            if Path(p).resolve() != Path(path).resolve():
-                stack.enter_context(lock(Path(p), shared=True))
+            stack.enter_context(lock(Path(p), shared=True))
         yield stack.enter_context(atomic_output(path, overwrite, file))
