@@ -232,7 +232,7 @@ def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...
 
 
 SMOOTH_AT_M = 50.0  # range at which the stack's footprint has std stack_smoothing_m [m]
-SLOPE_WINDOW_M = 2.0  # std of the window the stack fits the local slope of what it saw over [m]
+SLOPE_WINDOW_M = 2.0  # std of the window the stack averages the local slope of what it saw over [m]
 MAX_FILL_SLOPE = 0.6  # steepest slope the stack extrapolates along [m/m]
 
 
@@ -255,7 +255,8 @@ def extrapolate(elev: NDArray[np.float32], cell_m: float, fill_m: float, slope_e
     """Return (``elev`` with its NaN cells within ``fill_m`` of a finite one filled, how much
     each cell is a guess's weight: 1 next to a seen cell falling to 0 at ``fill_m``, 0 on
     seen cells). A filled cell continues its nearest seen cell along the local slope of the
-    seen cells around it (a plane fit over SLOPE_WINDOW_M, at most MAX_FILL_SLOPE), tilted
+    seen cells around it (their gradient averaged over SLOPE_WINDOW_M, which flattens toward
+    the edge of what was seen; at most MAX_FILL_SLOPE), tilted
     by ``slope_err`` (the map's slope error, per grid axis): a guess errs more the farther
     it is from what was seen and the more the ground curves."""
     from scipy.ndimage import distance_transform_edt, gaussian_filter
