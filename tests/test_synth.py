@@ -34,6 +34,13 @@ def test_same_seed_same_bytes_other_seed_other_drive(tmp_path):
     assert fa["drive.mcap"] != fc["drive.mcap"]
 
 
+def test_the_paper_worlds_stack_errors_are_seeded_whatever_the_workers(tmp_path):
+    over = {"world": "paper", "duration_s": 1.0, "formats": "mcap"}
+    run_synth(small_config(synth={**over, "workers": 2}), tmp_path / "a")
+    run_synth(small_config(synth={**over, "workers": 1}), tmp_path / "b")
+    assert (tmp_path / "a" / "drive.mcap").read_bytes() == (tmp_path / "b" / "drive.mcap").read_bytes()
+
+
 def test_bags_open_with_rosbags_and_mcap(drive_dir, cfg):
     from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
@@ -347,7 +354,9 @@ def test_paper_world_maps_guess_around_what_they_see_and_say_so():
     guess = np.isfinite(filled.elevation) & (filled.confidence < sc.stack_fill_confidence) & (filled.confidence > 0)
     assert guess.sum() > 1000 and (filled.risk[guess] == 0).all()
     assert (filled.confidence[np.isfinite(filled.elevation)] > 0).mean() > 0.99  # every guess says it is one
-    assert np.abs(filled.elevation[guess] - 240.0).mean() < 0.3  # on flat ground, a guess errs by its slope error times its reach
+    # on flat ground a guess errs by the noise of the seen cell it continues and its slope error times its reach
+    bound = sc.elevation_noise_m + sc.elevation_noise_per_m * 60 + sc.stack_fill_slope_sd * sc.stack_fill_micro_m
+    assert np.abs(filled.elevation[guess] - 240.0).mean() < bound
     assert (held.confidence[np.isfinite(held.elevation)] == 0).any()  # a held cell does not say it is a guess
 
 
