@@ -179,8 +179,20 @@ class SynthConfig(_Model):
     stack_memory_views: int = Field(3, ge=1, le=16, description="lidar poses the stack's memory is drawn from, the current one included, evenly over its span (density model)")
     stack_voxel_m: float = Field(0.4, ge=0, description="the stack counts a map cell's returns over at least this column edge (its voxels) [m] (density model)")
     stack_points_conf: float = Field(1.0, gt=0, description="returns in a cell that make it 63 % confident before the range factor (density model)")
+    stack_drift_xy_m: float = Field(0.1, ge=0, description="std of the horizontal misregistration of a published map: the odometry's drift over the stack's memory (stack_memory_s), which places the older returns of its voxel map off from the newer; a random walk, so consecutive maps share most of it [m] (0: none)")
+    stack_drift_z_m: float = Field(0.05, ge=0, description="std of the vertical misregistration of a published map from the odometry's z drift over the stack's memory (as stack_drift_xy_m) [m]")
+    stack_drift_tilt_deg: float = Field(0.05, ge=0, description="std of the roll and pitch misregistration of a published map from the attitude drift over the stack's memory: its error grows linearly with range [deg]")
+    stack_jitter_xy_m: float = Field(0.15, ge=0, description="std of the horizontal registration jitter of each published map on its own (pose interpolation at the map's stamp, timing) [m]")
+    stack_jitter_z_m: float = Field(0.15, ge=0, description="std of the vertical registration jitter of each published map [m]")
+    stack_jitter_tilt_deg: float = Field(0.2, ge=0, description="std of the roll and pitch jitter of each published map (IMU attitude noise) [deg]")
+    stack_smoothing_m: float = Field(0.5, ge=0, description="std of the footprint the stack's elevation averages over at 50 m range, growing linearly from 0 at the sensor: sparse returns at range are binned over wide voxels, so rocks and ditches blur there (a blend of the cell and its neighbourhood blurred by this, weighted range / 50 m, at most 2) [m] (density model)")
+    stack_fill_micro_m: float = Field(3.0, ge=0, description="the stack extrapolates its micro map into unseen cells up to this far from a seen one, along the local slope of what it saw [m] (density model; 0: no fill)")
+    stack_fill_short_m: float = Field(32.0, ge=0, description="as stack_fill_micro_m for the short map [m] (density model)")
+    stack_fill_slope_sd: float = Field(0.12, ge=0, description="std of the error of the slope a map extrapolates along (one per map: the stack's plane fit to sparse returns), so a guess errs more the farther it is from what was seen [m/m] (density model)")
+    stack_fill_confidence: float = Field(0.05, ge=0, lt=0.1, description="confidence of an extrapolated cell next to a seen one, falling linearly to 0 at the fill distance: below fuse.min_conf's default (0.1), a guess never makes a label (density model)")
+    voxel_map_memory: Literal["stack", "two_sweeps"] = Field("stack", description="stack: the voxel map holds the returns of the stack's memory (the current lidar pose and the earlier ones of stack_memory_s, as its maps do); two_sweeps: the last two sweeps published (the easy world's)")
     elevation_noise_m: float = Field(0.04, ge=0, description="elevation noise at 0 m range [m]")
-    elevation_noise_per_m: float = Field(0.002, ge=0, description="noise growth with range [m/m]")
+    elevation_noise_per_m: float = Field(0.006, ge=0, description="elevation noise growth with range [m/m]: a cell seen by few returns at range gets them at grazing angles, off grass tops and edges (divided by the square root of the returns with the density model)")
     drift_xy_per_m: float = Field(0.003, ge=0, description="odometry xy drift per metre driven")
     drift_yaw_deg_per_100m: float = Field(0.2, ge=0, description="odometry heading drift")
     drift_z_m_per_s: float = Field(0.004, ge=0, description="odometry z drift rate [m/s]")
@@ -249,6 +261,8 @@ EASY_WORLD: dict[str, Any] = {
     "confidence_model": "range", "confidence_range_m": 35.0, "hill_amplitude_m": 6.0, "crest_amplitude_m": 0.0,
     "trees_per_ha": 2.0, "tree_height_min_m": 5.0, "tree_height_max_m": 12.0, "rocks_per_ha": 6.0,
     "bushes_per_ha": 0.0, "bush_height_min_m": 0.5, "bush_height_max_m": 1.5,
+    "stack_drift_xy_m": 0.0, "stack_drift_z_m": 0.0, "stack_drift_tilt_deg": 0.0, "stack_jitter_xy_m": 0.0, "stack_jitter_z_m": 0.0,
+    "stack_jitter_tilt_deg": 0.0, "voxel_map_memory": "two_sweeps", "elevation_noise_per_m": 0.002,
 }
 
 

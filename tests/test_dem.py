@@ -79,6 +79,15 @@ def test_alignment_and_inpainting_accuracy(dataset):
         assert rep.truth[r]["unobs"]["elevation_mae_m"] <= 0.25
     geoid = info.info.drives[0].alignment["geoid_offset_m"]
     assert -36 < geoid < -30  # estimated, never assumed: the synth geoid is -33 m
+    # the card's X-Racer-at-t rows (the stack's map at t against the labels) beside the paper's
+    from gtgen.cli.views import _xracer_rows
+
+    x = rep.card["xracer_at_t"]
+    for r in ("micro", "short"):
+        assert x[r]["elevation"]["obs_pc"]["coverage_pct"] > 99  # obs PC: where the map at t is confident
+        assert x[r]["elevation"]["obs_pc"]["mae_m"] < x[r]["elevation"]["unobs"]["mae_m"]
+    rows = _xracer_rows(x)
+    assert len(rows) == 4 and "[0.217 m]" in rows[0][1] and "[0.307 m (74 %)]" in rows[0][1] and "precision" in rows[1][1]
 
 
 def _shifted_dem(src, dst, de, dn):

@@ -34,6 +34,13 @@ def test_same_seed_same_bytes_other_seed_other_drive(tmp_path):
     assert fa["drive.mcap"] != fc["drive.mcap"]
 
 
+def test_the_paper_worlds_stack_errors_are_seeded_whatever_the_workers(tmp_path):
+    over = {"world": "paper", "duration_s": 1.0, "formats": "mcap"}
+    run_synth(small_config(synth={**over, "workers": 2}), tmp_path / "a")
+    run_synth(small_config(synth={**over, "workers": 1}), tmp_path / "b")
+    assert (tmp_path / "a" / "drive.mcap").read_bytes() == (tmp_path / "b" / "drive.mcap").read_bytes()
+
+
 def test_bags_open_with_rosbags_and_mcap(drive_dir, cfg):
     from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
@@ -314,3 +321,56 @@ def test_region_shares_are_of_the_labelled_cells():
     assert region_shares({"no_label": 0.5, "obs_pc": 0.1, "obs_f": 0.3, "unobs": 0.1}) == {"obs_pc": 20.0, "obs_f": 60.0, "unobs": 20.0}
     assert region_shares({"no_label": 1.0, "obs_pc": 0.0, "obs_f": 0.0, "unobs": 0.0}) == {"obs_pc": None, "obs_f": None, "unobs": None}
     assert all(abs(sum(p.values()) - 100) < 0.2 for p in PAPER_REGION_SHARE_PCT.values())
+
+
+def test_the_stack_extrapolates_unseen_cells_as_a_guess_that_errs_more_farther_out():
+    """A filled cell continues the seen ground along its slope (a fit that flattens toward
+    the edge of what was seen), is a guess (its weight falls from 1 to 0 over the fill
+    distance), reaches only stack_fill_*_m, and errs more the farther it is."""
+    from gtgen.synth.sensors import extrapolate
+
+    cell = 0.2
+    c = (np.arange(200) + 0.5) * cell
+    X, Y = np.meshgrid(c, c, indexing="ij")
+    plane = (0.1 * X - 0.05 * Y).astype(np.float32)
+    seen = X < 20.0
+    filled, guess = extrapolate(np.where(seen, plane, np.nan).astype(np.float32), cell, 6.0, np.zeros(2))
+    assert np.isfinite(filled[X < 25.9]).all() and np.isnan(filled[X > 26.1]).all()  # 6 m beyond what was seen
+    band = {d: (X > 20 + d - 0.1) & (X < 20 + d + 0.1) & (Y > 5) & (Y < 35) for d in (0.2, 1.0, 5.0)}
+    assert np.median(filled[band[5.0]]) > np.median(filled[band[1.0]]) + 0.1  # up the slope it saw
+    err = np.abs(filled - plane)
+    assert err[band[0.2]].mean() < 0.02 and err[band[1.0]].mean() < err[band[5.0]].mean() / 3  # errs more farther out
+    assert (guess[seen] == 0).all() and 0.9 < guess[band[0.2]].min() and guess[(X > 25.6) & (X < 25.9)].max() < 0.1
+    tilted, _ = extrapolate(np.where(seen, plane, np.nan).astype(np.float32), cell, 6.0, np.array([0.1, 0.0]))
+    assert abs(float(np.median((tilted - filled)[band[5.0]])) - 0.5) < 0.03  # the slope error times 5 m
+
+
+def test_paper_world_maps_guess_around_what_they_see_and_say_so():
+    from gtgen.synth.sensors import xracer_map
+
+    sc, t, view = _density_setup()
+    U, V, held = _map(sc, t, view, 0.2, 6.0)  # no fill_m: the last ground seen along each ray is held
+    filled = xracer_map(sc, t, view, (U, V), 0.0, np.random.default_rng(0), 0.2, 6.0, (), sc.stack_fill_micro_m)
+    guess = np.isfinite(filled.elevation) & (filled.confidence < sc.stack_fill_confidence) & (filled.confidence > 0)
+    assert guess.sum() > 1000 and (filled.risk[guess] == 0).all()
+    assert (filled.confidence[np.isfinite(filled.elevation)] > 0).mean() > 0.99  # every guess says it is one
+    # on flat ground a guess errs by the noise of the seen cell it continues and its slope error times its reach
+    bound = sc.elevation_noise_m + sc.elevation_noise_per_m * 60 + sc.stack_fill_slope_sd * sc.stack_fill_micro_m
+    assert np.abs(filled.elevation[guess] - 240.0).mean() < bound
+    assert (held.confidence[np.isfinite(held.elevation)] == 0).any()  # a held cell does not say it is a guess
+
+
+def test_the_stacks_registration_drifts_over_its_memory_and_the_easy_world_has_none():
+    from gtgen.config import SynthConfig
+    from gtgen.synth.run import stack_drift
+
+    sc = SynthConfig(seed=4)
+    d = stack_drift(sc, 20000)
+    assert abs(d[:, 0].std() / sc.stack_drift_xy_m - 1) < 0.1 and abs(d[:, 2].std() / sc.stack_drift_z_m - 1) < 0.1
+    assert abs(np.rad2deg(np.arctan(d[:, 3].std())) / sc.stack_drift_tilt_deg - 1) < 0.1
+    memory = int(round(sc.stack_memory_s * sc.map_rate_hz))
+    lag1 = np.corrcoef(d[:-1, 2], d[1:, 2])[0, 1]
+    lag_mem = np.corrcoef(d[:-memory, 2], d[memory:, 2])[0, 1]
+    assert lag1 > 0.9 and abs(lag_mem) < 0.1  # consecutive maps share it; a memory apart, they do not
+    assert np.array_equal(d, stack_drift(sc, 20000))  # seeded
+    assert stack_drift(SynthConfig(world="easy"), 100) is None

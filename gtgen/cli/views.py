@@ -52,6 +52,7 @@ def report(
     for r, share in c.get("region_share_pct", {}).items():
         paper = c["paper_region_share_pct"][r]
         rows.append((f"regions {r} (% of labelled; paper Tab. I)", ", ".join(f"{k} {na(v, '%')} ({paper[k]}%)" for k, v in share.items())))
+    rows += _xracer_rows(c.get("xracer_at_t"))
     if c.get("icp_fitness"):
         rows.append(("ICP fitness", ", ".join(f"{k} {v:.3f}" for k, v in c["icp_fitness"].items())))
     a = c.get("alignment", {})
@@ -87,6 +88,30 @@ def report(
                                               f"yaw {na(ga['yaw_deg'].get('median'), ' deg')}"))
     rows.append(("figures", ", ".join(str(p) for p in rep.figures)))
     table("gtgen report", rows)
+
+
+def _xracer_rows(x: dict | None) -> list[tuple[str, str]]:
+    """Return the card's X-Racer-at-t rows (the stack's map at t against the labels) beside
+    the paper's Tab. I / II numbers (in brackets)."""
+    if not x:
+        return []
+
+    def num(v: float | None, digits: int, unit: str = "") -> str:
+        return "n/a" if v is None else f"{v:.{digits}f}{unit}"
+
+    rows = []
+    for r in ("micro", "short"):
+        e, p = x[r]["elevation"], x["paper"][r]
+        cells = []
+        for k in ("obs_pc", "obs_f", "unobs"):
+            pc = p["coverage_pct"][k]
+            cells.append(f"{k} {num(e[k]['mae_m'], 3, ' m')} ({num(e[k]['coverage_pct'], 0, ' %')}) "
+                         f"[{p['mae_m'][k]:.3f} m{'' if pc is None else f' ({pc:.0f} %)'}]")
+        rows.append((f"X-Racer at t {r}: elevation MAE (coverage) [paper, Tab. I]", ", ".join(cells)))
+        rk = x[r]["risk"]
+        rows.append((f"X-Racer at t {r}: fatal risk [paper, Tab. II]", ", ".join(
+            f"{k} {num(rk[k], 4 if k == 'mse' else 3)} [{p['risk'][k]}]" for k in ("mse", "precision", "recall", "f1"))))
+    return rows
 
 
 @app.command()

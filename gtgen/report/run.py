@@ -14,10 +14,12 @@ from gtgen.report.figures import FIGURES, figures, signal_figure
 from gtgen.report.labels import LabelErrors
 from gtgen.report.rejections import rejection_truth
 from gtgen.report.stats import PAPER_REGION_SHARE_PCT, quantiles, region_shares
+from gtgen.report.xracer import xracer_at_t
 from gtgen.runtime.output import check_replace, write_json
 from gtgen.storage.dataset import DatasetStore
 
 REPORT_JSON = "report.json"
+XRACER_SAMPLES = 400  # samples (evenly spread) the X-Racer-at-t rows are measured on
 
 
 @dataclass
@@ -80,6 +82,7 @@ def build_report(dataset: Path, out_dir: Path, max_truth_samples: int = 40, over
     if S:  # the regions' shares of the labelled cells [%], beside the paper's (Tab. I)
         rep.card["region_share_pct"] = {r: region_shares(rep.card["coverage"][r]) for r in RANGES}
         rep.card["paper_region_share_pct"] = PAPER_REGION_SHARE_PCT
+        rep.card["xracer_at_t"] = xracer_at_t(ds, _spread(np.arange(S), XRACER_SAMPLES), ds.config.train.fatal_risk)
     if S and not placed.any():  # dem-align --no-dem: the unobserved cells stay unlabelled
         none = {r: 100 * rep.card["coverage"][r][codes.REGIONS[codes.NO_LABEL]] for r in RANGES}
         rep.card["dem"] = f"no DEM: {none['micro']:.1f} % (micro) / {none['short']:.1f} % (short) of the cells unlabelled"

@@ -14,7 +14,7 @@ import numpy as np
 
 from gtgen.bag.decode.image import encode_jpeg, resize_image
 from gtgen.bag.messages import MessageFactory, open_mcap_writer
-from gtgen.config import LIDARS, GtgenConfig, save_config
+from gtgen.config import LIDARS, GtgenConfig, SynthConfig, save_config
 from gtgen.errors import ConfigError, GtgenError
 from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, rescale_K, rpy_to_quat
 from gtgen.runtime.output import stage_output
@@ -187,6 +187,7 @@ class _Ticker:
         self.vel_odom = np.gradient(world.odom.p_odom, dt, axis=0)
         self.yaw_rate = np.gradient(np.unwrap(ro[:, 2]), dt)
         self._views: dict[int, sensors.LidarView] = {}  # the last few lidar views, by tick
+        self.drift = stack_drift(sc, -(-self.n // self.map_p))
 
     def _msg(self, out: list, topic: str | None, msgtype: str, t_rec: int, build) -> None:
         if topic is None:  # a role the config leaves to gtgen.mapping (topics.map_<range>, voxel_map: null)
@@ -213,20 +214,36 @@ class _Ticker:
                 del self._views[min(self._views)]
         return view
 
-    def _memory(self, k: int, speed: float) -> tuple[sensors.LidarView, ...]:
-        """Return the views at the earlier poses of the stack's memory at tick ``k``: at most
+    def _memory_ticks(self, k: int, speed: float) -> list[int]:
+        """Return the ticks of the earlier poses of the stack's memory at tick ``k``: at most
         ``stack_memory_views - 1`` of them, on a fixed lattice of ticks that spreads that
         many over ``stack_memory_s`` (so consecutive maps share them), within the memory's
         span at ``speed``."""
         sc = self.cfg.synth
         n = sc.stack_memory_views - 1
         if sc.confidence_model != "density" or n < 1:
-            return ()
+            return []
         step = max(1, int(round(sc.stack_memory_s * sc.odom_rate_hz / (n + 1) / self.map_p))) * self.map_p  # [ticks]
         span = sensors.stack_memory_s(sc, speed) * sc.odom_rate_hz  # [ticks]
         last = (k - 1) // step * step  # the lattice tick before k
         ks = [last - i * step for i in range(n)]
-        return tuple(self._view(j) for j in ks if j >= 0 and k - j <= span)
+        return [j for j in ks if j >= 0 and k - j <= span]
+
+    def _memory(self, k: int, speed: float) -> tuple[sensors.LidarView, ...]:
+        """Return the views at the earlier poses of the stack's memory at tick ``k``."""
+        return tuple(self._view(j) for j in self._memory_ticks(k, speed))
+
+    def _registration(self, k: int) -> np.ndarray | None:
+        """Return the registration error of the maps of map tick ``k``: (x, y, z [m], slope
+        in x, slope in y [m/m]) in the world frame, the drift over the stack's memory plus
+        this map's jitter; None when the stack registers perfectly (no draw then)."""
+        sc = self.cfg.synth
+        sd = np.array([sc.stack_jitter_xy_m, sc.stack_jitter_xy_m, sc.stack_jitter_z_m,
+                       *np.tan(np.deg2rad([sc.stack_jitter_tilt_deg] * 2))])
+        if self.drift is None and not sd.any():
+            return None
+        jitter = np.random.default_rng([sc.seed, 19, k]).standard_normal(5) * sd
+        return jitter if self.drift is None else self.drift[k // self.map_p] + jitter
 
     def tick(self, k: int) -> list:
         """Return [(topic, msgtype, record time, [bytes per flavour])] of tick ``k``."""
@@ -289,11 +306,19 @@ class _Ticker:
         names = tp.layers
         speed = float(world.path.speed[world.pose_idx[k]])
         memory = self._memory(k, speed)
+        reg = self._registration(k)
         for rng_name in ("micro", "short"):
             grid = cfg.grids.get(rng_name)
             center = np.round(odom.p_odom[k, :2] / grid.resolution_m) * grid.resolution_m
             cells = sensors.map_cells_world(grid, center, odom, k)
-            layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng, grid.resolution_m, speed, memory)
+            fill_m = sc.stack_fill_micro_m if rng_name == "micro" else sc.stack_fill_short_m
+            if reg is None:
+                layers = sensors.xracer_map(sc, world.terrain, view, cells, z_off, rng, grid.resolution_m, speed, memory, fill_m)
+            else:  # the map shows the terrain of a place off by its registration error, tilted about the vehicle
+                u, v = cells
+                layers = sensors.xracer_map(sc, world.terrain, view, (u + reg[0], v + reg[1]), z_off, rng, grid.resolution_m, speed, memory, fill_m)
+                p = world.poses.pos[k]
+                layers.elevation += (reg[2] + reg[3] * (u - p[0]) + reg[4] * (v - p[1])).astype(np.float32)
             start = (0, 0)
             if sc.circular_buffer_every and m % sc.circular_buffer_every == 1:
                 start = tuple(int(x) for x in rng.integers(1, grid.size, 2))
@@ -304,20 +329,26 @@ class _Ticker:
             )
 
     def _voxel_map(self, out: list, k: int, view: sensors.LidarView) -> None:
-        """The voxel map aggregates the last two lidar sweeps it was given, in odom."""
+        """The voxel map aggregates, in odom, the returns of the stack's memory (the current
+        lidar pose and the earlier ones its maps hold, each with its share of the memory's
+        revolutions) or with ``voxel_map_memory: two_sweeps`` the last two sweeps it was given."""
         tp, odom = self.cfg.topics, self.world.odom
         t = int(self.world.t_ns[k])
         sc = self.cfg.synth
         rng = np.random.default_rng([sc.seed, 17, k])  # thins the points by the returns (density model)
 
-        def points(j: int, v: sensors.LidarView) -> np.ndarray:
-            revs = sensors.stack_revolutions(sc, float(self.world.path.speed[self.world.pose_idx[j]]))
+        def points(j: int, v: sensors.LidarView, share: int = 1) -> np.ndarray:
+            revs = sensors.stack_revolutions(sc, float(self.world.path.speed[self.world.pose_idx[j]])) / share
             return odom.world_to_odom(j, sensors.view_points(v, rng, revs))
 
-        pts = [points(k, view)]
-        if k >= self.vox_p:
-            kp = k - self.vox_p
-            pts.append(points(kp, self._view(kp)))
+        if sc.voxel_map_memory == "stack":
+            ticks = [k, *self._memory_ticks(k, float(self.world.path.speed[self.world.pose_idx[k]]))]
+            pts = [points(j, self._view(j), len(ticks)) for j in ticks]
+        else:
+            pts = [points(k, view)]
+            if k >= self.vox_p:
+                kp = k - self.vox_p
+                pts.append(points(kp, self._view(kp)))
         allp = np.vstack(pts)
         inside = np.all(np.abs(allp[:, :2] - odom.p_odom[k, :2]) < VOXEL_HALF_M, axis=1)
         vx = sensors.voxelize(allp[inside], VOXEL_M)
@@ -339,6 +370,19 @@ class _Ticker:
             D = np.asarray(sc.distortion if lens.distorted else np.zeros(5))
             self._msg(out, topics.image, "sensor_msgs/msg/CompressedImage", t, lambda f, frame=frame, jpeg=jpeg, seq=seq: f.compressed_image(t, frame, jpeg, seq))
             self._msg(out, topics.info, "sensor_msgs/msg/CameraInfo", t, lambda f, frame=frame, seq=seq, D=D: f.camera_info(t, frame, *size, self.K, seq, D))
+
+
+def stack_drift(sc: SynthConfig, n_maps: int) -> np.ndarray | None:
+    """Return the registration drift of each of ``n_maps`` published maps (n_maps, 5): (x,
+    y, z [m], slope in x, slope in y [m/m]), the change of a random walk over the stack's
+    memory (``stack_memory_s`` of maps), so its std is ``stack_drift_*`` and consecutive
+    maps share most of it; None when every ``stack_drift_*`` is 0 (no draw then)."""
+    sd = np.array([sc.stack_drift_xy_m, sc.stack_drift_xy_m, sc.stack_drift_z_m, *np.tan(np.deg2rad([sc.stack_drift_tilt_deg] * 2))])
+    if not sd.any():
+        return None
+    memory = max(1, int(round(sc.stack_memory_s * sc.map_rate_hz)))  # [maps]
+    walk = np.cumsum(np.random.default_rng([sc.seed, 18]).standard_normal((n_maps + memory, 5)) * (sd / np.sqrt(memory)), axis=0)
+    return walk[memory:] - walk[:-memory]
 
 
 _TICKER: _Ticker | None = None  # the worker's ticker, made by _start_worker
@@ -407,7 +451,6 @@ def _write_truth(cfg: GtgenConfig, world: SynthWorld, folder: Path) -> None:
 
 def load_world(out: Path) -> SynthWorld:
     """Return the SynthWorld of a synth output folder (from ``truth/truth.json``)."""
-    from gtgen.config import SynthConfig
 
     meta_path = out / "truth" / "truth.json"
     if not meta_path.is_file():

@@ -132,6 +132,7 @@ def xracer_map(
     cell_m: float = 0.2,
     speed_mps: float = 0.0,
     memory: tuple[LidarView, ...] = (),
+    fill_m: float = 0.0,
 ) -> MapLayers:
     """Return the simulated X-Racer layers at cells whose world positions are given.
 
@@ -147,10 +148,13 @@ def xracer_map(
     its maps aggregate the returns over time); its confidence is
     ``(1 - exp(-count / stack_points_conf)) * 0.5 ** (range / confidence_range_m)``, range
     being the nearest a view that sees the cell came to it, its elevation noise falls as
-    1 / sqrt(count).
+    1 / sqrt(count). What it sees is blurred over a footprint growing with range
+    (``stack_smoothing_m``), and ``fill_m`` > 0 extrapolates the map into unseen cells up
+    to that far from a seen one (``extrapolate``); 0 holds the last ground seen along each
+    ray instead.
     """
     if cfg.confidence_model == "density":
-        return _density_map(cfg, terrain, (view, *memory), cell_world_uv, z_world_to_map, rng, cell_m, speed_mps)
+        return _density_map(cfg, terrain, (view, *memory), cell_world_uv, z_world_to_map, rng, cell_m, speed_mps, fill_m)
     u, v = cell_world_uv
     ground, risk, surface = terrain.sample(u, v, ("ground", "risk", "surface")) if cfg.canopy else (*terrain.sample(u, v, ("ground", "risk")), None)
     ai, ri, r = polar_lookup(view, u, v)
@@ -176,7 +180,7 @@ def xracer_map(
 
 
 def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...], cell_world_uv: tuple[NDArray, NDArray],
-                 z_world_to_map: float, rng: np.random.Generator, cell_m: float, speed_mps: float) -> MapLayers:
+                 z_world_to_map: float, rng: np.random.Generator, cell_m: float, speed_mps: float, fill_m: float) -> MapLayers:
     """``xracer_map`` with confidence from the returns in each cell (the paper world)."""
     if any(w.density is None for w in views):
         raise ValueError("xracer_map: the density model needs views made with confidence_model 'density'")
@@ -207,10 +211,17 @@ def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...
     seen_g &= hit
     noise_sd = (np.float32(cfg.elevation_noise_m) + np.float32(cfg.elevation_noise_per_m) * r) / np.sqrt(np.maximum(count, 1))
     seen = ground if surface is None else np.where(seen_s & ~seen_g, surface, ground)
-    elev = np.where(seen_g | seen_s, seen + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd, held)
+    seen = range_smoothed(seen, r, cfg.stack_smoothing_m, cell_m)
+    elev = seen + rng.standard_normal(u.shape, dtype=np.float32) * noise_sd
     conf = (1 - np.exp(-count / np.float32(cfg.stack_points_conf))) * np.exp2(r * np.float32(-1.0 / cfg.confidence_range_m))
     conf = np.clip(conf * (1 + np.float32(0.05) * rng.standard_normal(u.shape, dtype=np.float32)), 0, 1)
     conf = np.where(seen_s, conf, np.float32(0.0))
+    if fill_m > 0:
+        slope_err = rng.standard_normal(2) * cfg.stack_fill_slope_sd
+        elev, guess = extrapolate(np.where(seen_g | seen_s, elev, np.float32(np.nan)), cell_m, fill_m, slope_err)
+        conf = np.where(seen_s, conf, np.float32(cfg.stack_fill_confidence) * guess)
+    else:
+        elev = np.where(seen_g | seen_s, elev, held)
     risk_obs = np.clip(risk + np.float32(0.03) * rng.standard_normal(u.shape, dtype=np.float32), 0, 1)
     nan = np.isnan(elev)
     return MapLayers(
@@ -218,6 +229,55 @@ def _density_map(cfg: SynthConfig, terrain: Terrain, views: tuple[LidarView, ...
         risk=np.where(nan, np.float32(np.nan), np.where(seen_s, risk_obs, np.float32(0.0))).astype(np.float32, copy=False),
         confidence=np.where(nan, np.float32(0.0), conf).astype(np.float32, copy=False),
     )
+
+
+SMOOTH_AT_M = 50.0  # range at which the stack's footprint has std stack_smoothing_m [m]
+SLOPE_WINDOW_M = 2.0  # std of the window the stack averages the local slope of what it saw over [m]
+MAX_FILL_SLOPE = 0.6  # steepest slope the stack extrapolates along [m/m]
+
+
+def range_smoothed(z: NDArray[np.float32], r: NDArray[np.float32], sigma_m: float, cell_m: float) -> NDArray[np.float32]:
+    """Return the grid ``z`` blurred over a Gaussian footprint whose std grows linearly with
+    the range ``r`` [m] (``sigma_m`` at SMOOTH_AT_M): blends of ``z`` and ``z`` blurred by
+    ``sigma_m`` up to SMOOTH_AT_M, then of the blur by ``sigma_m`` and by twice that."""
+    if sigma_m <= 0:
+        return z
+    from scipy.ndimage import gaussian_filter
+
+    b1 = gaussian_filter(z, sigma_m / cell_m, mode="nearest")
+    b2 = gaussian_filter(z, 2 * sigma_m / cell_m, mode="nearest")
+    w = np.clip(r * np.float32(1 / SMOOTH_AT_M), 0, 2)
+    near = z + np.minimum(w, 1) * (b1 - z)
+    return np.where(w <= 1, near, b1 + (w - 1) * (b2 - b1)).astype(np.float32, copy=False)
+
+
+def extrapolate(elev: NDArray[np.float32], cell_m: float, fill_m: float, slope_err: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Return (``elev`` with its NaN cells within ``fill_m`` of a finite one filled, how much
+    each cell is a guess's weight: 1 next to a seen cell falling to 0 at ``fill_m``, 0 on
+    seen cells). A filled cell continues its nearest seen cell along the local slope of the
+    seen cells around it (their gradient averaged over SLOPE_WINDOW_M, which flattens toward
+    the edge of what was seen; at most MAX_FILL_SLOPE), tilted
+    by ``slope_err`` (the map's slope error, per grid axis): a guess errs more the farther
+    it is from what was seen and the more the ground curves."""
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    known = np.isfinite(elev)
+    none = np.zeros(elev.shape, np.float32)
+    if not known.any() or known.all():
+        return elev, none
+    d, (I, J) = distance_transform_edt(~known, return_indices=True)
+    d_m = (d * cell_m).astype(np.float32)
+    fill = ~known & (d_m <= fill_m)
+    s = max(1.0, SLOPE_WINDOW_M / cell_m)
+    w = gaussian_filter(known.astype(np.float32), s, mode="constant")
+    zs = gaussian_filter(np.where(known, elev, np.float32(0.0)), s, mode="constant") / np.maximum(w, np.float32(1e-6))
+    gx, gy = np.gradient(zs, cell_m)
+    gx = np.clip(gx[I, J] + np.float32(slope_err[0]), -MAX_FILL_SLOPE, MAX_FILL_SLOPE)
+    gy = np.clip(gy[I, J] + np.float32(slope_err[1]), -MAX_FILL_SLOPE, MAX_FILL_SLOPE)
+    ii, jj = np.indices(elev.shape)
+    guessed = elev[I, J] + (gx * (ii - I) + gy * (jj - J)) * np.float32(cell_m)
+    out = np.where(fill, guessed, elev).astype(np.float32, copy=False)
+    return out, np.where(fill, 1 - d_m / np.float32(max(fill_m, 1e-9)), np.float32(0.0)).astype(np.float32, copy=False)
 
 
 def map_cells_world(grid: GridSpec, center_odom_xy: NDArray, odom, k: int) -> tuple[NDArray, NDArray]:

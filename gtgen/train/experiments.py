@@ -23,7 +23,7 @@ import yaml
 from gtgen import codes
 from gtgen.config import RANGES, GtgenConfig, load_config, read_yaml
 from gtgen.errors import ConfigError, TrainError
-from gtgen.report.stats import PAPER_REGION_SHARE_PCT
+from gtgen.report.stats import PAPER_REGION_SHARE_PCT, PAPER_XRACER_AT_T
 from gtgen.runtime.output import check_replace, lock, output_folder, signature, write_atomic, write_json
 from gtgen.storage.dataset import DatasetStore
 from gtgen.train.checkpoint import load_checkpoint
@@ -134,21 +134,31 @@ def _per_range(stem: str) -> tuple[str, ...]:
     return tuple(f"{stem}-{r}" for r in RANGES)
 
 
+def _xracer_tab1(r: str, key: str) -> tuple[float | None, ...]:
+    """Return the paper's X-Racer-at-t Tab. I columns (obs PC, obs F, unobs, total) of ``key``."""
+    return (*PAPER_XRACER_AT_T[r][key].values(), None)
+
+
+def _xracer_tab2(r: str) -> tuple[float | None, ...]:
+    """Return the paper's X-Racer-at-t Tab. II columns (MSE, precision, recall, F1)."""
+    return tuple(PAPER_XRACER_AT_T[r]["risk"][k] for k in ("mse", "precision", "recall", "f1"))
+
+
 # the paper's numbers (Tab. I-IV); Tab. I's share row is each region's share of the labelled cells [%]
 _TAB1 = {
     "micro": {"share": (*PAPER_REGION_SHARE_PCT["micro"].values(), None), "lss": (0.819, 1.01, 2.093, 1.167), "pp": (0.41, 0.545, 1.208, 0.635),
-              "xracer": (0.217, 0.307, 0.747, None), "xracer_cov": (None, 74.0, 45.0, None), "rr": (0.399, 0.592, 1.629, 0.738),
+              "xracer": _xracer_tab1("micro", "mae_m"), "xracer_cov": _xracer_tab1("micro", "coverage_pct"), "rr": (0.399, 0.592, 1.629, 0.738),
               "womr": (0.241, 0.422, 1.261, 0.532), "ours": (0.215, 0.318, 0.869, 0.396)},
     "short": {"share": (*PAPER_REGION_SHARE_PCT["short"].values(), None), "lss": (1.489, 1.948, 3.606, 2.638), "pp": (0.732, 0.868, 1.992, 1.368),
-              "xracer": (0.225, 0.642, 2.421, None), "xracer_cov": (None, 90.0, 83.0, None), "rr": (0.418, 0.852, 2.311, 1.453),
+              "xracer": _xracer_tab1("short", "mae_m"), "xracer_cov": _xracer_tab1("short", "coverage_pct"), "rr": (0.418, 0.852, 2.311, 1.453),
               "womr": (0.276, 0.627, 1.835, 1.126), "ours": (0.288, 0.65, 1.874, 1.155)},
 }
 _TAB2 = {  # MSE, precision, recall, F1 (the paper's X-Racer F1 is as printed there)
-    "micro": {"lss": (0.0104, 0.363, 0.113, 0.173), "pp": (0.0086, 0.466, 0.189, 0.269), "xracer": (0.0056, 0.618, 0.541, 0.721),
-              "xracer_cov": (None, 70.0, None, None), "rr": (0.0086, 0.501, 0.207, 0.293), "womr": (0.0080, 0.519, 0.240, 0.329),
+    "micro": {"lss": (0.0104, 0.363, 0.113, 0.173), "pp": (0.0086, 0.466, 0.189, 0.269), "xracer": _xracer_tab2("micro"),
+              "xracer_cov": (None, PAPER_XRACER_AT_T["micro"]["risk"]["coverage_pct"], None, None), "rr": (0.0086, 0.501, 0.207, 0.293), "womr": (0.0080, 0.519, 0.240, 0.329),
               "ours": (0.0076, 0.523, 0.272, 0.357)},
-    "short": {"lss": (0.0237, 0.241, 0.241, 0.241), "pp": (0.0173, 0.431, 0.291, 0.347), "xracer": (0.0110, 0.878, 0.537, 0.667),
-              "xracer_cov": (None, 90.0, None, None), "rr": (0.0175, 0.433, 0.305, 0.358), "womr": (0.0165, 0.473, 0.343, 0.397),
+    "short": {"lss": (0.0237, 0.241, 0.241, 0.241), "pp": (0.0173, 0.431, 0.291, 0.347), "xracer": _xracer_tab2("short"),
+              "xracer_cov": (None, PAPER_XRACER_AT_T["short"]["risk"]["coverage_pct"], None, None), "rr": (0.0175, 0.433, 0.305, 0.358), "womr": (0.0165, 0.473, 0.343, 0.397),
               "ours": (0.0166, 0.465, 0.345, 0.396)},
 }
 _TAB3 = {1: (0.592, 0.304, 1.563, 0.331), 2: (0.521, 0.307, 1.372, 0.350), 5: (0.466, 0.316, 1.299, 0.358),
