@@ -10,12 +10,12 @@ from conftest import run_cli
 
 def test_users_commands_verbatim_in_one_folder(tmp_path):
     steps = [
-        ("synth", "drive", "--duration", "4", "--format", "mcap"),
+        ("synth", "drive", "--duration", "2", "--format", "mcap"),
         ("extract", "drive/drive.mcap"),
         ("fuse", "--window", "60"),
         ("dem-align",),
         ("train", "--steps", "1"),
-        ("eval", "--split", "all"),  # a 4 s drive has no val block: an empty val split is an error
+        ("eval", "--split", "all"),  # a 2 s drive has no val block: an empty val split is an error
     ]
     for args in steps:
         p = run_cli(*args, cwd=tmp_path)
