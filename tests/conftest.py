@@ -137,12 +137,3 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
 def needs_realdata() -> pytest.MarkDecorator:
     return pytest.mark.skipif(not REALDATA.is_dir(), reason=f"shared/realdata not found at {REALDATA}")
 
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Keep the tests that share a module-scoped fixture on one xdist worker (``--dist
-    loadgroup``), so that the fixture (a drive, a build) is made once, not once a worker."""
-    for item in items:
-        defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
-        if any(d and d[-1].scope == "module" for d in defs.values()):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
