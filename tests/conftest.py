@@ -1,19 +1,30 @@
 """Shared fixtures: one small synthetic drive per test session, and the stages run on it.
 
 The drive is made by the real ``run_synth`` from ``tests/data/small.yaml`` (seeded), so
-every stage test sees the same bytes. Session fixtures are built lazily and reused.
+every stage test sees the same bytes. Session fixtures are built lazily, once per run:
+the first xdist worker to need one builds it under a file lock, the others read it.
+
+Each test process uses one OpenMP / BLAS / torch thread: the two xdist workers already
+keep both cores busy, and nested threads only contend.
 """
 
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-from pathlib import Path
 
-import pytest
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from gtgen.config import GtgenConfig, load_config
+import fcntl  # noqa: E402
+import shutil  # noqa: E402
+import subprocess  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from gtgen.config import GtgenConfig, load_config  # noqa: E402
+from warm_gtgen import WarmGtgen  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 SMALL = DATA / "small.yaml"
@@ -32,75 +43,97 @@ def cfg() -> GtgenConfig:
     return small_config()
 
 
+def shared(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]) -> Path:
+    """Return the path ``name`` ('ws/drive.zarr') of this run's shared folder, made by
+    ``build(path)`` once for all xdist workers (the first to ask builds it under a lock;
+    a failed build leaves nothing behind)."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared"
+    out = root / name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    key = name.replace("/", "_")
+    with open(root / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / f"{key}.done").exists():
+            shutil.rmtree(out, ignore_errors=True)
+            try:
+                build(out)
+            except BaseException:
+                shutil.rmtree(out, ignore_errors=True)
+                raise
+            (root / f"{key}.done").touch()
+    return out
+
+
 @pytest.fixture(scope="session")
 def drive_dir(tmp_path_factory, cfg) -> Path:
     from gtgen.synth import run_synth
 
-    out = tmp_path_factory.mktemp("synth") / "drive"
-    run_synth(cfg, out)
-    return out
+    return shared(tmp_path_factory, "synth/drive", lambda out: run_synth(cfg, out))
 
 
 @pytest.fixture(scope="session")
 def drive_store(tmp_path_factory, drive_dir, cfg) -> Path:
     from gtgen.extract import run_extract
 
-    out = tmp_path_factory.mktemp("ws") / "drive.zarr"
-    run_extract([drive_dir / "drive.mcap"], out, cfg)
-    return out
+    return shared(tmp_path_factory, "ws/drive.zarr", lambda out: run_extract([drive_dir / "drive.mcap"], out, cfg))
 
 
 @pytest.fixture(scope="session")
-def fused_store(drive_store, cfg) -> Path:
+def fused_store(tmp_path_factory, drive_store, cfg) -> Path:
     from gtgen.fuse.run import run_fuse
 
-    out = drive_store.parent / "fused.zarr"
-    run_fuse(drive_store, out, cfg, workers=1)
-    return out
+    return shared(tmp_path_factory, "ws/fused.zarr", lambda out: run_fuse(drive_store, out, cfg, workers=1))
 
 
 @pytest.fixture(scope="session")
-def dataset(fused_store, drive_store, cfg) -> Path:
+def dataset(tmp_path_factory, fused_store, drive_store, cfg) -> Path:
     from gtgen.dataset.dem_align import run_dem_align
 
-    out = drive_store.parent / "dataset.zarr"
-    run_dem_align(drive_store, fused_store, None, out, cfg)
-    return out
+    return shared(tmp_path_factory, "ws/dataset.zarr", lambda out: run_dem_align(drive_store, fused_store, None, out, cfg))
 
 
 @pytest.fixture(scope="session")
 def with_val(dataset, tmp_path_factory) -> Path:
     """The test dataset with every fourth sample in the val split."""
-    import shutil
 
-    import zarr
+    def build(out: Path) -> None:
+        import zarr
 
-    out = tmp_path_factory.mktemp("val") / "dataset.zarr"
-    shutil.copytree(dataset, out)
-    g = zarr.open_group(str(out), mode="r+")
-    split = g["meta/split"][:]
-    split[::4] = 1
-    g["meta/split"][:] = split
-    reseal(out)
-    return out
+        shutil.copytree(dataset, out)
+        g = zarr.open_group(str(out), mode="r+")
+        split = g["meta/split"][:]
+        split[::4] = 1
+        g["meta/split"][:] = split
+        reseal(out)
+
+    return shared(tmp_path_factory, "val/dataset.zarr", build)
 
 
 def reseal(store: Path) -> None:
     """Record a store a test edited in place as written whole (as a gtgen that wrote it so
     would have), so that the edit, not the integrity check, is what the test meets."""
-    import shutil
-
     from gtgen.storage.integrity import MANIFEST, write_manifest
 
     shutil.rmtree(store / MANIFEST, ignore_errors=True)
     write_manifest(store)
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
-    """Run ``python -m gtgen ARGS`` and return the finished process (text output)."""
-    env = dict(os.environ, COLUMNS="200")
-    return subprocess.run([sys.executable, "-m", "gtgen", *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+_WARM = WarmGtgen()
+
+
+def run_cli(*args: object, cwd: Path | None = None, timeout: float = 600, columns: int = 200,
+            env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run ``gtgen ARGS`` as its own process (forked from a warm interpreter, see
+    ``tests/warm_gtgen.py``) on a terminal ``columns`` wide, and return the finished
+    process (text output). ``env`` replaces this process's environment."""
+    return _WARM.run([str(a) for a in args], cwd, dict(env if env is not None else os.environ, COLUMNS=str(columns)), timeout)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    _WARM.close()
 
 
 def needs_realdata() -> pytest.MarkDecorator:
     return pytest.mark.skipif(not REALDATA.is_dir(), reason=f"shared/realdata not found at {REALDATA}")
+

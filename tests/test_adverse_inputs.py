@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +15,7 @@ import pytest
 import zarr
 
 from bagtools import rewrite
-from conftest import SMALL
+from conftest import SMALL, run_cli
 from gtgen.bag.reader import stamp_ns
 from gtgen.storage.drive import DriveStore
 
@@ -28,9 +26,7 @@ LEFT, RIGHT = "/cam_left/image/compressed", "/cam_right/image/compressed"
 # -- what every case checks ---------------------------------------------------------------
 def gtgen(*args: object, cwd: Path, columns: int = 80) -> subprocess.CompletedProcess:
     """Run ``python -m gtgen ARGS`` in ``cwd`` on a terminal ``columns`` wide."""
-    env = dict(os.environ, COLUMNS=str(columns))
-    return subprocess.run([sys.executable, "-m", "gtgen", *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                          timeout=300, env=env)
+    return run_cli(*args, cwd=cwd, columns=columns, timeout=300)
 
 
 def snapshot(folder: Path) -> dict[str, str]:

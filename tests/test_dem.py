@@ -103,7 +103,7 @@ def _shifted_dem(src, dst, de, dn):
 
 def test_dem_of_the_wrong_place_is_rejected_for_every_sample(drive_dir, drive_store, fused_store, cfg, tmp_path):
     _shifted_dem(drive_dir / "dem", tmp_path / "dem", 40.0, -30.0)
-    res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg)
+    res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg, workers=1)
     assert res.n_kept == 0
     assert set(res.rejected) <= {"low_fitness", "high_rmse", "no_dem", "too_few_points"} and sum(res.rejected.values()) == res.n_in
     info = DatasetStore(tmp_path / "ds.zarr")
@@ -114,16 +114,16 @@ def test_dem_of_the_wrong_place_is_rejected_for_every_sample(drive_dir, drive_st
 def test_dem_without_overlap_crs_or_tiles(drive_dir, drive_store, fused_store, cfg, tmp_path):
     _shifted_dem(drive_dir / "dem", tmp_path / "far", 100_000.0, 0.0)
     with pytest.raises(DemError, match="does not cover the drive"):
-        run_dem_align(drive_store, fused_store, tmp_path / "far", tmp_path / "a.zarr", cfg)
+        run_dem_align(drive_store, fused_store, tmp_path / "far", tmp_path / "a.zarr", cfg, workers=1)
     nocrs = tmp_path / "nocrs"
     nocrs.mkdir()
     with rasterio.open(nocrs / "x.tif", "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as ds:
         ds.write(np.zeros((4, 4), np.float32), 1)
     with pytest.raises(DemError, match="has no CRS"):
-        run_dem_align(drive_store, fused_store, nocrs, tmp_path / "b.zarr", cfg)
+        run_dem_align(drive_store, fused_store, nocrs, tmp_path / "b.zarr", cfg, workers=1)
     (tmp_path / "empty").mkdir()
     with pytest.raises(DemError, match="has no raster tiles"):
-        run_dem_align(drive_store, fused_store, tmp_path / "empty", tmp_path / "c.zarr", cfg)
+        run_dem_align(drive_store, fused_store, tmp_path / "empty", tmp_path / "c.zarr", cfg, workers=1)
     assert not any((tmp_path / n).exists() for n in ("a.zarr", "b.zarr", "c.zarr"))
 
 
@@ -132,7 +132,7 @@ def test_missing_tile_leaves_unlabelled_cells_not_wrong_labels(drive_dir, drive_
     shutil.copytree(drive_dir / "dem", dem)
     victim = sorted(dem.glob("*.tif"))[0]
     victim.unlink()
-    res = run_dem_align(drive_store, fused_store, dem, tmp_path / "ds.zarr", cfg)
+    res = run_dem_align(drive_store, fused_store, dem, tmp_path / "ds.zarr", cfg, workers=1)
     info = DatasetStore(tmp_path / "ds.zarr")
     g = info.group
     assert info.n_samples > 0
@@ -149,10 +149,10 @@ def test_gnss_absent_for_the_whole_drive(drive_dir, cfg, tmp_path):
     from gtgen.fuse.run import run_fuse
 
     c = small_config(topics={"gnss": "/no/gnss"})
-    run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", c)
+    run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", c, workers=1)
     run_fuse(tmp_path / "d.zarr", tmp_path / "f.zarr", c, workers=1)
     with pytest.raises(AlignmentError, match="GNSS absent for the whole drive"):
-        run_dem_align(tmp_path / "d.zarr", tmp_path / "f.zarr", drive_dir / "dem", tmp_path / "x.zarr", c)
+        run_dem_align(tmp_path / "d.zarr", tmp_path / "f.zarr", drive_dir / "dem", tmp_path / "x.zarr", c, workers=1)
 
 
 def _surface(seed: int, n: int = 60, res: float = 0.8):
@@ -222,7 +222,7 @@ def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dat
     wrong = next(n.split("_")[3] for _, n in seen if n.split("_")[3][:5] != shifted[:5] and n.split("_")[3][5:] != shifted[5:])
     dxyz = (2.0, -1.0, 0.3)  # whole pixels: a tile off the mosaic's pixel lattice is read nearest
     _altered_dem(drive_dir / "dem", tmp_path / "dem", shifted, dxyz, wrong)
-    res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg)
+    res = run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", cfg, workers=1)
     got = {Path(t.path).name: t for t in DatasetStore(tmp_path / "ds.zarr").info.drives[0].tiles}
     s = next(t for n, t in got.items() if shifted in n)
     assert s.status == "corrected", s

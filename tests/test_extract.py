@@ -105,7 +105,7 @@ def test_extract_store_contents(drive_store, cfg):
 
 def test_ros1_and_ros2_bags_give_the_same_store(drive_dir, drive_store, cfg, tmp_path):
     out = tmp_path / "from_bag.zarr"
-    run_extract([drive_dir / "drive.bag"], out, cfg)
+    run_extract([drive_dir / "drive.bag"], out, cfg, workers=1)
     a, b = DriveStore(drive_store).group, DriveStore(out).group
     for name in ("samples/t_ns", "samples/pos_odom_m", "maps/micro/t_ns", "gnss/lat_deg", "voxel_maps/points_odom_m", "samples/T_base_cam"):
         np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
@@ -148,7 +148,7 @@ def test_bad_bags_raise_clear_errors(drive_dir, tmp_path, cfg, make, err, needle
     path = make(drive_dir, tmp_path)
     out = tmp_path / "d.zarr"
     with pytest.raises(err, match=needle.replace("(", r"\(").replace(")", r"\)")) as exc:
-        run_extract([path], out, cfg)
+        run_extract([path], out, cfg, workers=1)
     assert "\n" not in str(exc.value)
     assert not out.exists() and not partials(out)
 
@@ -167,7 +167,7 @@ def _truncate(src, dst, n=None):
 def test_missing_topic_names_role_and_candidates(drive_dir, tmp_path):
     cfg = small_config(topics={"map_micro": "/elevation_mapping/map"})
     with pytest.raises(TopicError) as exc:
-        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg)
+        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg, workers=1)
     msg = str(exc.value)
     assert "role 'map.micro'" in msg and "/elevation_mapping/map" in msg and "/xracer/map/micro" in msg
 
@@ -175,7 +175,7 @@ def test_missing_topic_names_role_and_candidates(drive_dir, tmp_path):
 def test_unknown_layer_names(drive_dir, tmp_path):
     cfg = small_config(topics={"layers": {"elevation": "height"}})
     with pytest.raises(GtgenError) as exc:
-        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg)
+        run_extract([drive_dir / "drive.mcap"], tmp_path / "d.zarr", cfg, workers=1)
     assert "height" in str(exc.value) and "elevation" in str(exc.value)
     assert not (tmp_path / "d.zarr").exists()
 
@@ -194,7 +194,7 @@ def test_out_of_order_and_duplicate_odometry(drive_dir, drive_store, cfg, tmp_pa
         yield t, msg
 
     bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "messy.mcap", edit)
-    res = run_extract([bag], tmp_path / "m.zarr", cfg)
+    res = run_extract([bag], tmp_path / "m.zarr", cfg, workers=1)
     assert any("duplicate" in w for w in res.warnings)
     a, b = DriveStore(drive_store).group, DriveStore(tmp_path / "m.zarr").group
     np.testing.assert_array_equal(a["poses/t_ns"][:], b["poses/t_ns"][:])
@@ -212,7 +212,7 @@ def test_odometry_gap_rejects_samples_with_reason(drive_dir, cfg, tmp_path):
         yield t, msg
 
     bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "gap.mcap", edit)
-    res = run_extract([bag], tmp_path / "g.zarr", cfg)
+    res = run_extract([bag], tmp_path / "g.zarr", cfg, workers=1)
     assert res.rejected.get("no_pose", 0) >= 1
     assert any("gaps" in w for w in res.warnings)
     g = DriveStore(tmp_path / "g.zarr").group
@@ -232,7 +232,7 @@ def test_all_nan_maps_are_not_used(drive_dir, cfg, tmp_path):
         yield t, msg
 
     bag = rewrite_mcap(drive_dir / "drive.mcap", tmp_path / "nan.mcap", edit)
-    res = run_extract([bag], tmp_path / "n.zarr", cfg)
+    res = run_extract([bag], tmp_path / "n.zarr", cfg, workers=1)
     micro = next(s for s in res.topics if s["role"] == "map.micro")
     assert "all-NaN" in micro["first_error"]
     g = DriveStore(tmp_path / "n.zarr").group
@@ -256,7 +256,7 @@ def test_failed_extract_leaves_no_store_a_later_stage_accepts(drive_dir, tmp_pat
 
 
 def test_cli_extract_summary_and_missing_file(drive_dir, tmp_path):
-    p = run_cli("extract", drive_dir / "drive.mcap", "-c", SMALL, cwd=tmp_path)
+    p = run_cli("extract", drive_dir / "drive.mcap", "--workers", "1", "-c", SMALL, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "samples kept" in p.stdout and "/xracer/map/micro" in p.stdout
     assert (tmp_path / "gtgen_ws" / "drive.zarr").is_dir()  # the workspace default
@@ -365,7 +365,7 @@ def test_truncated_bag_at_seeded_offsets_never_a_traceback_or_a_hang(drive_dir, 
 @pytest.fixture(scope="module")
 def bag_store(drive_dir, tmp_path_factory, cfg):
     out = tmp_path_factory.mktemp("bag") / "drive.zarr"
-    run_extract([drive_dir / "drive.bag"], out, cfg)
+    run_extract([drive_dir / "drive.bag"], out, cfg, workers=1)
     return out
 
 

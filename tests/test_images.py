@@ -140,7 +140,7 @@ def test_the_stored_jpeg_of_an_unresized_frame_is_the_bags_bytes(drive_dir, tmp_
 
     cfg = small_config(extract={"image_width": 64, "image_height": 40})
     out = tmp_path / "d.zarr"
-    run_extract([drive_dir / "drive.mcap"], out, cfg)
+    run_extract([drive_dir / "drive.mcap"], out, cfg, workers=1)
     d = DriveStore(out)
     s = d.samples
     ks = np.arange(d.n_samples)

@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 from bagtools import split_mcap
-from conftest import SMALL, small_config
+from conftest import SMALL, run_cli, small_config
 from gtgen.synth import run_synth
 from pipelines.build_dataset import build_dataset
 
@@ -84,8 +84,8 @@ def test_rerun_skips_done_drives(drives, pool_build):
 
 
 def test_killed_run_resumed_gives_identical_arrays(drives, pool_build, tmp_path):
-    cmd = [sys.executable, "-m", "gtgen", "build", str(drives), "-o", str(tmp_path), "--workers", "1", "-c", str(SMALL)]
-    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    args = ["build", str(drives), "-o", str(tmp_path), "--workers", "1", "-c", str(SMALL)]
+    p = subprocess.Popen([sys.executable, "-m", "gtgen", *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
     while time.time() < deadline and not list((tmp_path / "drives").glob("*/done.json")):
         time.sleep(0.2)
@@ -94,7 +94,7 @@ def test_killed_run_resumed_gives_identical_arrays(drives, pool_build, tmp_path)
     p.wait()
     assert list((tmp_path / "drives").glob("*/done.json")), "the build never finished a drive"
     assert not (tmp_path / "dataset.zarr").exists()
-    p = subprocess.run(cmd, capture_output=True, text=True)
+    p = run_cli(*args)
     assert p.returncode == 0, p.stderr
     assert "skipped" in p.stdout
     _same(_arrays(pool_build), _arrays(tmp_path))
@@ -110,8 +110,7 @@ def test_corrupt_bag_fails_its_drive_only(drives, tmp_path):
     data = (drives / "a" / "drive.mcap").read_bytes()
     (bad / "drive.mcap").write_bytes(data[:300])  # cut inside its first chunk: nothing to recover
     shutil.copytree(drives / "a" / "dem", bad / "dem")
-    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(src), "-o", str(tmp_path / "o"), "-c", str(SMALL)],
-                       capture_output=True, text=True)
+    p = run_cli("build", src, "-o", tmp_path / "o", "-c", SMALL)
     assert p.returncode == 2
     text = " ".join(p.stdout.replace("│", " ").split())
     assert "drive z_bad FAILED" in text and "truncated inside its header or first chunk" in text
@@ -225,8 +224,7 @@ def test_a_changed_dem_of_each_kind_redoes_the_drive_and_an_unchanged_one_is_ski
 
 def test_build_checks_the_dem_before_any_work_and_takes_a_single_raster(drives, tmp_path):
     out = tmp_path / "out"
-    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(drives / "a"), "--dem", str(tmp_path / "nope"), "-o", str(out),
-                        "-c", str(SMALL)], capture_output=True, text=True)
+    p = run_cli("build", drives / "a", "--dem", tmp_path / "nope", "-o", out, "-c", SMALL)
     assert p.returncode == 1 and "does not exist" in p.stderr and "Traceback" not in p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
     assert not (out / "drives").exists()  # no drive ran
@@ -236,10 +234,10 @@ def test_build_checks_the_dem_before_any_work_and_takes_a_single_raster(drives, 
     assert len(TileIndex.build(tile[0]).tiles) == 1  # --dem FILE: one raster is a DEM
     bad = tmp_path / "m.yaml"
     bad.write_text("drives: [not, a, mapping")
-    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(bad), "-o", str(out)], capture_output=True, text=True)
+    p = run_cli("build", bad, "-o", out)
     assert p.returncode == 1 and "not valid YAML" in p.stderr and len(p.stderr.strip().splitlines()) == 1
     bad.write_text("drives: [a, b]")
-    p = subprocess.run([sys.executable, "-m", "gtgen", "build", str(bad), "-o", str(out)], capture_output=True, text=True)
+    p = run_cli("build", bad, "-o", out)
     assert p.returncode == 1 and "mapping of drive names" in p.stderr and len(p.stderr.strip().splitlines()) == 1
 
 
@@ -260,8 +258,7 @@ def test_report_of_a_multi_drive_dataset_judges_each_drive_by_its_own_truth(pool
 
 def test_build_replaces_only_what_gtgen_wrote_and_a_failed_build_leaves_nothing(drives, tmp_path):
     def build(src: Path, out: Path, *more: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "gtgen", "build", str(src), "-o", str(out), "-c", str(SMALL), "--workers", "1", *more],
-                              capture_output=True, text=True)
+        return run_cli("build", src, "-o", out, "-c", SMALL, "--workers", "1", *more)
 
     def one_line(p: subprocess.CompletedProcess) -> str:
         assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
@@ -304,7 +301,6 @@ def test_a_drive_held_out_as_test_is_in_no_other_split_and_eval_reports_on_it(dr
 
     import yaml
 
-    from conftest import run_cli
     from gtgen import codes
     from gtgen.report import build_report
     from test_train import SMALL_TRAIN
