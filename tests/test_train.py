@@ -63,7 +63,7 @@ def test_overfitting_a_fixed_batch(dataset):
     model = build_model(cfg.train, ds.data_cfg)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
-    for _ in range(150):
+    for _ in range(300):  # one thread per test process: 150 steps ended at 0.105 of the first loss
         loss, _ = total_loss(model(batch), batch, cfg.train)
         opt.zero_grad()
         loss.backward()
