@@ -138,7 +138,7 @@ def test_missing_tile_leaves_unlabelled_cells_not_wrong_labels(drive_dir, drive_
     assert info.n_samples > 0
     for r in ("micro", "short"):
         reg = g[f"labels/{r}/region"][:]
-        el = g[f"labels/{r}/elevation_m"][:]
+        el = info.read(f"labels/{r}/elevation_m")  # decoded: metres, NaN where unlabelled
         assert np.isfinite(el[reg > 0]).all() and np.isnan(el[reg == 0]).all()
     assert (g["labels/short/region"][:] == 0).any() or res.rejected
 

@@ -182,7 +182,17 @@ def _fail(message: str) -> None:
     typer.echo(f"error: {message}", err=True)
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     warnings.filterwarnings("ignore", message="coroutine .* was never awaited")
+    sys.unraisablehook = _quiet_closed_loop
     sys.exit(1)
+
+
+def _quiet_closed_loop(unraisable: Any) -> None:
+    """After an error: drop the "Event loop is closed" of zarr reads cut short, collected
+    at exit (the second campaign's TRACEBACK-1); anything else is shown as Python would."""
+    exc = unraisable.exc_value
+    if isinstance(exc, RuntimeError) and "Event loop is closed" in str(exc):
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def _terminated(signum: int, frame: Any) -> None:
