@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +163,10 @@ def test_curves_validation_best_and_resume_after_a_kill(with_val, tmp_path):
     assert [r["step"] for r in killed] == [1, 2, 3]
     # as if killed after step 3 before its checkpoint: back to the checkpoint of step 2
     shutil.copy(tmp_path / "at2.pt", run / "ckpt.pt")
+    # TensorBoard names event files <second>.<host>.<pid>.<writer counter>: two writers of one
+    # process in one second sort by the counter as text (.10 before .9) and replay out of order;
+    # runs of a user are processes of their own, a second apart at least
+    time.sleep(1.1)
     res = train(with_val, run, cfg, resume=True, max_steps=2)
     rows = read_csv(run / "train.csv")
     assert [r["step"] for r in rows] == [1, 2, 3, 4]  # the killed run's step 3 replaced, once
