@@ -13,7 +13,8 @@ extrinsics of the raw camera are those of the rectified image.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -107,29 +108,27 @@ class Remap:
     u: NDArray[np.float64]  # (H, W) source column of each output pixel
     v: NDArray[np.float64]  # (H, W) source row
     src_shape: tuple[int, int]  # source (h, w)
-    _taps: list = field(default_factory=list, repr=False, compare=False)  # filled once by taps()
 
+    @cached_property
     def taps(self) -> tuple[NDArray[np.intp], NDArray[np.float32]]:
-        """Return the flat source indices (4, H*W) of each output pixel's four neighbours
-        and their bilinear weights (4, H*W, 1); weight 0 outside the source."""
-        if not self._taps:
-            h, w = self.src_shape
-            u, v = self.u.ravel(), self.v.ravel()
-            inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-            j0 = np.clip(np.floor(u), 0, max(w - 2, 0)).astype(np.intp)  # the last centre: j0 = w-2, fc = 1
-            i0 = np.clip(np.floor(v), 0, max(h - 2, 0)).astype(np.intp)
-            fc, fr = np.where(inside, u - j0, 0.0), np.where(inside, v - i0, 0.0)
-            j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
-            idx = np.stack([i0 * w + j0, i0 * w + j1, i1 * w + j0, i1 * w + j1])
-            wts = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc]) * inside
-            self._taps.extend([idx, wts.astype(np.float32)[..., None]])
-        return self._taps[0], self._taps[1]
+        """The flat source indices (4, H*W) of each output pixel's four neighbours and their
+        bilinear weights (4, H*W, 1), worked out once; weight 0 outside the source."""
+        h, w = self.src_shape
+        u, v = self.u.ravel(), self.v.ravel()
+        inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        j0 = np.clip(np.floor(u), 0, max(w - 2, 0)).astype(np.intp)  # the last centre: j0 = w-2, fc = 1
+        i0 = np.clip(np.floor(v), 0, max(h - 2, 0)).astype(np.intp)
+        fc, fr = np.where(inside, u - j0, 0.0), np.where(inside, v - i0, 0.0)
+        j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
+        idx = np.stack([i0 * w + j0, i0 * w + j1, i1 * w + j0, i1 * w + j1])
+        wts = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc]) * inside
+        return idx, wts.astype(np.float32)[..., None]
 
     def __call__(self, img: NDArray[np.uint8]) -> NDArray[np.uint8]:
         """Return ``img`` (h, w, C) resampled onto the output grid (H, W, C)."""
         if img.shape[:2] != self.src_shape:
             raise ValueError(f"remap made for {self.src_shape} images, got {img.shape[:2]}")
-        idx, wts = self.taps()
+        idx, wts = self.taps
         flat = img.reshape(-1, img.shape[-1])
         acc = flat[idx[0]] * wts[0]
         for k in range(1, 4):

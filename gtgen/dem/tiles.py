@@ -310,6 +310,7 @@ class DemMosaic:
         self._anchor = (anchor.left, anchor.top) if anchor else (0.0, 0.0)
         self._same = [CRS.from_wkt(t.crs) == work for t in index.tiles]
         self._open: OrderedDict[int, Any] = OrderedDict()
+        self._pages: OrderedDict[tuple[int, int], NDArray[np.float32]] = OrderedDict()  # read() pages, newest last
 
     @property
     def tile_names(self) -> list[str]:
@@ -414,7 +415,7 @@ class DemMosaic:
 
     def _page(self, pr: int, pc: int) -> NDArray[np.float32]:
         """Return page (pr, pc) of the lattice (``PAGE`` x ``PAGE`` pixels), read once."""
-        cache = self.__dict__.setdefault("_pages", OrderedDict())
+        cache = self._pages
         page = cache.get((pr, pc))
         if page is None:
             ax, ay, res = *self._anchor, self.res
