@@ -190,6 +190,42 @@ def test_icp_recovers_a_known_placement_whatever_the_source_order(seed):
     np.testing.assert_allclose(again.rmse_m, res.rmse_m, rtol=1e-9)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grid_nearest_finds_what_the_kd_tree_finds(seed):
+    """A DEM patch's nearest cells from its grid (no tree) against open3d's KD-tree (the
+    oracle): the same inliers, the same neighbours and distances; ICP on either the same."""
+    from gtgen.dem.icp import GridNearest, KdNearest, icp_4dof
+    from gtgen.geometry import yaw_transform
+    from gtgen.grids import cell_centers
+
+    rng = np.random.default_rng(seed)
+    c = cell_centers(120, 0.8)
+    X, Y = np.meshgrid(c, c, indexing="ij")
+    Z = np.sin(X / 7.0) + 0.3 * rng.standard_normal(X.shape)
+    Z[rng.random(Z.shape) < 0.1] = np.nan  # holes: no DEM there
+    ok = np.isfinite(Z)
+    target = np.column_stack([X[ok], Y[ok], Z[ok]])
+    q = target[rng.choice(len(target), 4000, replace=False)] + rng.normal(0, 0.6, (4000, 3))
+    q = np.vstack([q, [[500.0, 0.0, 0.0], [0.0, -80.0, 0.0]]])  # far off the grid: no neighbour
+    grid, kd = GridNearest(c, c, Z), KdNearest(target)
+    np.testing.assert_array_equal(grid.points, target)
+    for r in (0.5, 1.0, 2.4, 3.0):  # 3.0 m is wider than the window: the grid hands it to a tree
+        gi, gd = grid.query(q, r)
+        ki, kd_d = kd.query(q, r)
+        inl = kd_d < r
+        assert inl.sum() > 1000 and not inl[-2:].any()
+        np.testing.assert_array_equal(gd < r, inl)
+        np.testing.assert_array_equal(gi[inl], ki[inl])
+        np.testing.assert_allclose(gd[inl], kd_d[inl], rtol=0, atol=1e-12)
+    normals = np.column_stack([np.zeros(len(target)), np.zeros(len(target)), np.ones(len(target))])
+    src = (target[(np.abs(target[:, 0]) < 30) & (np.abs(target[:, 1]) < 30)] - [0.3, -0.2, 0.1])
+    src = src @ yaw_transform(0, 0, 0, 0.01)[:3, :3]
+    a = icp_4dof(src, target, normals, 1.0, 30, nearest=grid)
+    b = icp_4dof(src, target, normals, 1.0, 30)
+    np.testing.assert_allclose(a.T, b.T, atol=1e-12)
+    assert (a.fitness, a.iterations) == (b.fitness, b.iterations)
+
+
 def _altered_dem(src, dst, shifted, dxyz, wrong):
     """Copy the DEM tiles of ``src`` to ``dst``: tile ``shifted`` (name part) moved by
     (dx, dy) and raised by dz, tile ``wrong`` holding the terrain from 60 m away."""

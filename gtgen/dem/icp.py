@@ -1,8 +1,12 @@
 """Point-to-plane ICP restricted to x, y, z and yaw (gravity stays down).
 
-Correspondences come from open3d's nearest-neighbour search (built once per target,
-queried in Z-order of the source so that neighbouring queries walk the same tree
-branches); each iteration solves the linearised 4-DoF point-to-plane least squares in
+Correspondences are each source point's nearest target point within the correspondence
+distance: from open3d's nearest-neighbour search for any target (``KdNearest``, built
+once per target, queried in Z-order of the source so that neighbouring queries walk the
+same tree branches), or, for a target that is a height field on a regular grid (a DEM
+patch: ``GridNearest``), from the few cells a side whose centres can lie that close, with
+no tree to build (the same neighbours: tests/test_dem.py holds it to ``KdNearest``). Each
+iteration solves the linearised 4-DoF point-to-plane least squares in
 closed form. Fitness is the share of source points with a target point within
 ``max_distance``; the inlier RMSE is point-to-plane over those points.
 """
@@ -28,19 +32,70 @@ class IcpResult:
     n_source: int
 
 
-def _nns(points: NDArray):
-    import open3d.core as o3c
+class KdNearest:
+    """Nearest target points of any point set (open3d's KD-tree, built on first use)."""
 
-    nns = o3c.nns.NearestNeighborSearch(o3c.Tensor(np.ascontiguousarray(points, dtype=np.float64)))
-    nns.knn_index()
-    return nns
+    def __init__(self, points: NDArray) -> None:
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self._nns = None
+
+    def query(self, q: NDArray, max_distance: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Return each query point's nearest target point (index) and its distance [m]
+        (``max_distance`` is not used: every point gets its nearest)."""
+        import open3d.core as o3c
+
+        if self._nns is None:
+            self._nns = o3c.nns.NearestNeighborSearch(o3c.Tensor(self.points))
+            self._nns.knn_index()
+        idx, d2 = self._nns.knn_search(o3c.Tensor(np.ascontiguousarray(q, dtype=np.float64)), 1)
+        return idx.numpy().ravel().astype(np.int64), np.sqrt(d2.numpy().ravel())
 
 
-def _query(nns, q: NDArray) -> tuple[NDArray, NDArray]:
-    import open3d.core as o3c
+class GridNearest:
+    """Nearest target points of a height field: heights ``Z`` (nx, ny) at cell centres
+    ``x`` (nx) by ``y`` (ny) on a regular grid, NaN where there is none. The target points
+    are the finite cells in C order (``column_stack([X[ok], Y[ok], Z[ok]])`` with X, Y of
+    ``meshgrid(x, y, indexing="ij")``). A query looks at the cells whose centres can lie
+    within ``max_distance`` of it (3 x 3 at 1 m on a 0.8 m grid): exact within it, distance
+    inf beyond; wide radii go to a KD-tree of the same points."""
 
-    idx, d2 = nns.knn_search(o3c.Tensor(np.ascontiguousarray(q, dtype=np.float64)), 1)
-    return idx.numpy().ravel().astype(np.int64), np.sqrt(d2.numpy().ravel())
+    MAX_WINDOW = 4  # cells a side; wider windows cost more than the tree
+
+    def __init__(self, x: NDArray, y: NDArray, Z: NDArray) -> None:
+        self.x, self.y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        self.res = float(self.x[1] - self.x[0])
+        ok = np.isfinite(Z)
+        self.Z = np.where(ok, Z, np.inf).astype(np.float64)  # inf: never the nearest
+        self.rank = np.cumsum(ok.ravel()) - 1  # cell (C order) -> target point
+        X, Y = np.meshgrid(self.x, self.y, indexing="ij")
+        self.points = np.column_stack([X[ok], Y[ok], Z[ok]])
+        self._kd: KdNearest | None = None
+
+    def query(self, q: NDArray, max_distance: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Return each query point's nearest target point within ``max_distance`` (index)
+        and its distance [m], inf where there is none that close (index then meaningless)."""
+        w = int(np.floor(2 * max_distance / self.res)) + 1
+        if w > self.MAX_WINDOW:
+            self._kd = self._kd or KdNearest(self.points)
+            return self._kd.query(q, max_distance)
+        nx, ny = self.Z.shape
+        i0 = np.ceil((q[:, 0] - max_distance - self.x[0]) / self.res).astype(np.int64)
+        j0 = np.ceil((q[:, 1] - max_distance - self.y[0]) / self.res).astype(np.int64)
+        best, cell = np.full(len(q), np.inf), np.zeros(len(q), np.int64)
+        for di in range(w):  # a loop over the window's offsets; each step is vectorised over the points
+            i = i0 + di
+            vi = (i >= 0) & (i < nx)
+            i = np.clip(i, 0, nx - 1)
+            dx2 = (self.x[i] - q[:, 0]) ** 2
+            for dj in range(w):
+                j = j0 + dj
+                v = vi & (j >= 0) & (j < ny)
+                j = np.clip(j, 0, ny - 1)
+                d2 = dx2 + (self.y[j] - q[:, 1]) ** 2 + (self.Z[i, j] - q[:, 2]) ** 2
+                better = v & (d2 < best)
+                best[better] = d2[better]
+                cell[better] = i[better] * ny + j[better]
+        return np.maximum(self.rank[cell], 0), np.sqrt(best)
 
 
 def _z_order(points: NDArray, cell_m: float) -> NDArray[np.intp]:
@@ -58,12 +113,14 @@ def _z_order(points: NDArray, cell_m: float) -> NDArray[np.intp]:
 
 
 def icp_4dof(
-    source: NDArray, target: NDArray, normals: NDArray, max_distance: float, iterations: int, init: NDArray | None = None
+    source: NDArray, target: NDArray, normals: NDArray, max_distance: float, iterations: int, init: NDArray | None = None,
+    nearest: KdNearest | GridNearest | None = None,
 ) -> IcpResult:
-    """Return the x, y, z, yaw transform that aligns ``source`` (N, 3) to ``target`` (M, 3)."""
+    """Return the x, y, z, yaw transform that aligns ``source`` (N, 3) to ``target`` (M, 3);
+    ``nearest``, a search over ``target`` (default a ``KdNearest`` of it)."""
     if len(source) == 0 or len(target) == 0:
         return IcpResult(np.eye(4), 0.0, float("inf"), 0, len(source))
-    nns = _nns(target)
+    nns = nearest if nearest is not None else KdNearest(target)
     source = source[_z_order(source, max_distance)]  # the result does not depend on the order
     x = np.zeros(4)  # yaw, tx, ty, tz
     if init is not None:
@@ -72,7 +129,7 @@ def icp_4dof(
     for it in range(1, iterations + 1):  # noqa: B007 - the count of iterations run is read after the loop
         T = yaw_transform(x[1], x[2], x[3], x[0])
         p = source @ T[:3, :3].T + T[:3, 3]
-        idx, d = _query(nns, p)
+        idx, d = nns.query(p, max_distance)
         inl = d < max_distance
         if inl.sum() < 6:
             break
@@ -93,7 +150,7 @@ def icp_4dof(
             break
     T = yaw_transform(x[1], x[2], x[3], x[0])
     p = source @ T[:3, :3].T + T[:3, 3]
-    idx, d = _query(nns, p)
+    idx, d = nns.query(p, max_distance)
     inl = d < max_distance
     fitness = float(inl.mean())
     if inl.any():

@@ -17,7 +17,7 @@ from gtgen import codes
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import PlanarFit, gnss_fit
-from gtgen.dem.icp import IcpResult, icp_4dof
+from gtgen.dem.icp import GridNearest, IcpResult, icp_4dof
 from gtgen.dem.tiles import DemSource, TileOffset, sample_bilinear
 from gtgen.errors import DemError
 from gtgen.geometry import invert, yaw_transform
@@ -202,8 +202,9 @@ class DrivePlacement:
         tgt_mask = np.isfinite(dem)
         tgt = np.column_stack([self.X[tgt_mask], self.Y[tgt_mask], dem[tgt_mask]])
         nrm = _normals(np.where(tgt_mask, dem, np.nanmedian(dem)), self.cfg.grids.short.resolution_m)[tgt_mask]
-        init = icp_4dof(src, tgt, nrm, COARSE * dc.icp_max_distance_m, dc.icp_iterations).T if coarse else None
-        return icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations, init=init)
+        near = GridNearest(self.X[:, 0], self.Y[0], dem)  # the patch is a height field on the short grid
+        init = icp_4dof(src, tgt, nrm, COARSE * dc.icp_max_distance_m, dc.icp_iterations, nearest=near).T if coarse else None
+        return icp_4dof(src, tgt, nrm, dc.icp_max_distance_m, dc.icp_iterations, init=init, nearest=near)
 
     def _signals(self, res: IcpResult | None, T: NDArray, T_odom_target: NDArray, t_ns: int, elev: NDArray, ground: NDArray,
                  aligned: NDArray) -> dict[str, float]:
