@@ -50,18 +50,25 @@ def test_out_of_range_and_infinite_values_are_refused_by_name():
     assert Packing("int32", 0.001).pack(np.array([2.1e6]), "x")[0] == 2_100_000_000  # within int32 at 1 mm
 
 
-def test_blosc_chunks_are_zarrs_bytes_and_a_changed_byte_fails(tmp_path):
+@pytest.mark.parametrize(("codec", "dtype"), [("blosc", "int32"), ("lz4", "float32")])
+def test_blosc_chunks_are_zarrs_bytes_and_a_changed_byte_fails(tmp_path, codec, dtype):
+    """Packed arrays ("blosc") and the intermediate float grids ("lz4"): the chunk bytes
+    gtgen writes by hand are zarr's, and a changed byte fails the decode."""
+    from gtgen.storage.codecs import codec_of
+
     root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
-    v = np.random.default_rng(1).integers(-5000, 5000, (2, 9, 7)).astype(np.int32)
-    a = root.create_array("a", shape=v.shape, dtype="int32", chunks=(1, 9, 7), compressors=compressors("blosc"))
+    v = np.random.default_rng(1).integers(-5000, 5000, (2, 9, 7)).astype(dtype) / (1 if dtype == "int32" else 7)
+    v = v.astype(dtype)
+    a = root.create_array("a", shape=v.shape, dtype=dtype, chunks=(1, 9, 7), compressors=compressors(codec))
     a[:] = v
+    assert codec_of([c.to_dict() for c in a.metadata.codecs], dtype) == codec
     data = (tmp_path / "s.zarr" / "a" / "c" / "1" / "0" / "0").read_bytes()
-    assert data == encode_chunk(v[1:2], "blosc")
-    np.testing.assert_array_equal(decode_chunk(data, np.dtype("int32"), (1, 9, 7), "blosc"), v[1:2])
+    assert data == encode_chunk(v[1:2], codec)
+    np.testing.assert_array_equal(decode_chunk(data, np.dtype(dtype), (1, 9, 7), codec), v[1:2])
     bad = bytearray(data)
     bad[len(bad) // 2] ^= 1
     with pytest.raises(ValueError, match="crc32c"):
-        decode_chunk(bytes(bad), np.dtype("int32"), (1, 9, 7), "blosc")
+        decode_chunk(bytes(bad), np.dtype(dtype), (1, 9, 7), codec)
 
 
 class _Flat(dict):

@@ -31,7 +31,7 @@ from gtgen.extract.voxels import padded, thinned_points
 from gtgen.runtime.pool import BackgroundWrites
 from gtgen.storage.chunks import make_parent
 from gtgen.storage.codecs import encode_chunk
-from gtgen.storage.schema import MAP_LAYERS
+from gtgen.storage.schema import DRIVE, MAP_LAYERS
 
 STAGE = "stage"  # folder of the partial store holding staged chunks; removed before the store completes
 
@@ -102,9 +102,9 @@ class Stager:
         finally:
             self.writes.__exit__(*exc)
 
-    def _write(self, file: Path, value: NDArray) -> None:
+    def _write(self, file: Path, value: NDArray, codec: str = "zstd") -> None:
         make_parent(file, self.made)
-        self.writes.submit(lambda: file.write_bytes(encode_chunk(value)))
+        self.writes.submit(lambda: file.write_bytes(encode_chunk(value, codec)))
 
     def add_image(self, role: str, i: int, t: int, src: Source) -> None:
         """Stage frame ``i`` (slice ordinal) of camera ``role`` stamped ``t`` as it came."""
@@ -187,7 +187,8 @@ class Stager:
         g = decode_gridmap(msg, self.layer_names)  # it decodes: the scan checked it
         if g.shape != self.result.map_shape.setdefault(role, g.shape):
             return  # a size change: the targeted pass reports it if the plan wants this map
+        rng = role.split(".")[1]
         for name, layer in zip(MAP_LAYERS, self.layer_names):
-            self._write(self.result.chunk(role, i, name), g.layers[layer])
+            self._write(self.result.chunk(role, i, name), g.layers[layer], DRIVE.spec(f"maps/{rng}/{name}").codec)
         self.result.ordinals[role].add(i)
         self.result.map_pose[(role, i)] = (g.center_m, g.yaw_rad, g.frame_id)

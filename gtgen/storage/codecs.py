@@ -4,9 +4,11 @@ Contract (the Zarr v3 specification): an array's codecs are ``bytes`` (little en
 then ``zstd`` with its content checksum (``compressors()``; codec "zstd"), or, for the
 dataset's packed integer arrays (``storage/packing.py``), ``bytes``, ``blosc`` (zstd at
 ``BLOSC_LEVEL``, byte shuffle, the dtype's typesize) and ``crc32c`` (codec "blosc": the
-CRC32C of the compressed bytes appended, little endian). :func:`encode_chunk` makes the
-bytes zarr writes for one chunk of either, :func:`decode_chunk` reads them back and fails
-on a changed byte (zstd's checksum, or the CRC32C).
+CRC32C of the compressed bytes appended, little endian), or, for the float grids of the
+drive and fused stores that the next stage reads once (codec "lz4"), the same with blosc's
+lz4 at ``LZ4_LEVEL``. :func:`encode_chunk` makes the bytes zarr writes for one chunk of
+any, :func:`decode_chunk` reads them back and fails on a changed byte (zstd's checksum,
+or the CRC32C).
 
 Why by hand: gtgen's chunk and shard files are read and written without zarr's per-call
 cost (``storage/chunks.py``, ``shards.py``). Oracle: ``tests/test_format.py`` and
@@ -26,25 +28,37 @@ CHECKSUM = True  # each chunk carries zstd's content checksum (4 bytes): a chang
 # level 1 on the packed grids and points, and faster to write; level 5 gains 7 % more at
 # 4 times the encoding time
 BLOSC_LEVEL = 2
-CODECS = ("zstd", "blosc")
+# the intermediate stores' float grids (X-Racer maps, fused grids): written once and read
+# once by the next stage, where zstd's encoding and decoding were 30-40 % of fuse's time.
+# Measured on the default drive's micro maps, per 500 x 500 layer (zstd 1 -> blosc lz4 5
+# with byte shuffle): encode 2.6-4.2 -> 1.0-2.2 ms, decode 1.3-1.6 -> 0.4-1.0 ms, the
+# stores about 20 % larger (bench/pipeline.py)
+LZ4_LEVEL = 5
+CODECS = ("zstd", "blosc", "lz4")
+_BLOSC = {"blosc": ("zstd", BLOSC_LEVEL), "lz4": ("lz4", LZ4_LEVEL)}  # codec -> blosc's cname, clevel
 
 
 def compressors(codec: str = "zstd") -> list:
     """Return the compressors of a gtgen array of ``codec``: zstd at ``ZSTD_LEVEL`` with its
-    checksum, or ("blosc", packed arrays) blosc zstd with byte shuffle then crc32c."""
-    if codec == "blosc":
+    checksum, or ("blosc", packed arrays; "lz4", intermediate float grids) blosc zstd or
+    lz4 with byte shuffle then crc32c."""
+    if codec in _BLOSC:
         from zarr.codecs import BloscCodec, Crc32cCodec
 
-        return [BloscCodec(cname="zstd", clevel=BLOSC_LEVEL, shuffle="shuffle"), Crc32cCodec()]
+        cname, level = _BLOSC[codec]
+        return [BloscCodec(cname=cname, clevel=level, shuffle="shuffle"), Crc32cCodec()]
+    if codec != "zstd":
+        raise ValueError(f"codec {codec!r}; expected one of {CODECS}")
     from zarr.codecs import ZstdCodec
 
     return [ZstdCodec(level=ZSTD_LEVEL, checksum=CHECKSUM)]
 
 
-def _blosc(itemsize: int) -> Any:
+def _blosc(itemsize: int, codec: str = "blosc") -> Any:
     from numcodecs import Blosc
 
-    return Blosc.from_config({"cname": "zstd", "clevel": BLOSC_LEVEL, "shuffle": Blosc.SHUFFLE, "blocksize": 0, "typesize": itemsize})
+    cname, level = _BLOSC[codec]
+    return Blosc.from_config({"cname": cname, "clevel": level, "shuffle": Blosc.SHUFFLE, "blocksize": 0, "typesize": itemsize})
 
 
 def encode_chunk(value: np.ndarray, codec: str = "zstd") -> bytes:
@@ -53,10 +67,10 @@ def encode_chunk(value: np.ndarray, codec: str = "zstd") -> bytes:
     v = np.ascontiguousarray(value)
     if v.dtype.byteorder == ">":
         v = v.astype(v.dtype.newbyteorder("<"))
-    if codec == "blosc":
+    if codec in _BLOSC:
         import google_crc32c
 
-        data = _blosc(v.dtype.itemsize).encode(v.view(np.uint8).reshape(-1))
+        data = _blosc(v.dtype.itemsize, codec).encode(v.view(np.uint8).reshape(-1))
         return bytes(data) + int(google_crc32c.value(data)).to_bytes(4, "little")
     from numcodecs import Zstd
 
@@ -67,14 +81,14 @@ def decode_chunk(data: bytes | memoryview, dtype: np.dtype, shape: tuple[int, ..
     """Return the values of one chunk's bytes of ``codec``; ValueError where its checksum
     (zstd's, or the crc32c of a blosc chunk) fails."""
     out = np.empty(shape, np.dtype(dtype).newbyteorder("<"))
-    if codec == "blosc":
+    if codec in _BLOSC:
         import google_crc32c
 
         raw = np.frombuffer(data, np.uint8)
         body = raw[:-4]
         if len(raw) < 4 or int(google_crc32c.value(body)) != int.from_bytes(raw[-4:].tobytes(), "little"):
             raise ValueError("chunk crc32c checksum does not match")
-        _blosc(out.dtype.itemsize).decode(body, out=out.view(np.uint8).reshape(-1))
+        _blosc(out.dtype.itemsize, codec).decode(body, out=out.view(np.uint8).reshape(-1))
         return out.astype(dtype, copy=False)
     from numcodecs import Zstd
 
@@ -90,9 +104,10 @@ def codec_of(codecs: list[dict], dtype: Any) -> str | None:
         got = [c if c["name"] != "bytes" else head for c in got]
     if got == [head, {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": CHECKSUM}}]:
         return "zstd"
-    blosc = {"typesize": np.dtype(dtype).itemsize, "cname": "zstd", "clevel": BLOSC_LEVEL, "shuffle": "shuffle", "blocksize": 0}
-    if got == [head, {"name": "blosc", "configuration": blosc}, {"name": "crc32c", "configuration": {}}]:
-        return "blosc"
+    for codec, (cname, level) in _BLOSC.items():
+        blosc = {"typesize": np.dtype(dtype).itemsize, "cname": cname, "clevel": level, "shuffle": "shuffle", "blocksize": 0}
+        if got == [head, {"name": "blosc", "configuration": blosc}, {"name": "crc32c", "configuration": {}}]:
+            return codec
     return None
 
 

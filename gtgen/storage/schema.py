@@ -50,9 +50,9 @@ _MAPS: list[ArraySpec] = []
 for _r in RANGES:
     _MAPS += [
         ArraySpec(f"maps/{_r}/t_ns", "int64", "(M_r,)", "ns", "-", "-", f"header stamp of each kept {_r} GridMap"),
-        ArraySpec(f"maps/{_r}/elevation_m", "float32", "(M_r, nx, ny)", "m", "map grid in odom", "NaN", "X-Racer elevation; axis 0 = map x from -L/2"),
-        ArraySpec(f"maps/{_r}/risk", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer traversability risk"),
-        ArraySpec(f"maps/{_r}/confidence", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer confidence"),
+        ArraySpec(f"maps/{_r}/elevation_m", "float32", "(M_r, nx, ny)", "m", "map grid in odom", "NaN", "X-Racer elevation; axis 0 = map x from -L/2", codec="lz4"),
+        ArraySpec(f"maps/{_r}/risk", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer traversability risk", codec="lz4"),
+        ArraySpec(f"maps/{_r}/confidence", "float32", "(M_r, nx, ny)", "0..1", "map grid in odom", "NaN", "X-Racer confidence", codec="lz4"),
         ArraySpec(f"maps/{_r}/center_odom_m", "float64", "(M_r, 3)", "m", "odom", "-", "grid centre (GridMap info.pose position)"),
         ArraySpec(f"maps/{_r}/yaw_odom_rad", "float64", "(M_r,)", "rad", "odom", "-", "grid yaw (GridMap info.pose orientation)"),
         ArraySpec(f"maps/{_r}/z_offset_m", "float64", "(M_r,)", "m", "odom", "-", "added to the map's elevations to put them in odom: its frame's height at the grid centre (0 in odom)"),
@@ -96,8 +96,8 @@ _DRIVE: list[ArraySpec] = [
     ArraySpec("scans/points_cm", "int16", "(L, Q, 3)", "cm", "sensor at the stamp", "-32768", "points of scan l in rows [0, n_points[l]), motion-corrected to the stamp if the cloud has per-point times; one chunk per scan"),
 ]
 
-DRIVE = StoreFormat("gtgen-drive", 7, tuple(_DRIVE), "gtgen extract BAG",
-                    "re-run 'gtgen extract BAG --overwrite' (version 7 stores the images of any camera rig: its 'cameras' attribute names them)",
+DRIVE = StoreFormat("gtgen-drive", 8, tuple(_DRIVE), "gtgen extract BAG",
+                    "re-run 'gtgen extract BAG --overwrite' (version 8 stores the maps' float grids with lz4, faster to write and read)",
                     ("grids", "topics", "extract", "mapping"))
 
 
@@ -108,17 +108,19 @@ _FUSED: list[ArraySpec] = [
 for _r in RANGES:
     _f = "vehicle frame at t"
     _FUSED += [
-        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "elevation of the confident observations in the window: their mean (fuse.elevation_rule mean), or the mean of those off the maps' top layer (rule ground)"),
-        ArraySpec(f"fused/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "max confidence in the window"),
-        ArraySpec(f"fused/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "latest risk with confidence >= risk_min_conf"),
+        ArraySpec(f"fused/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "elevation of the confident observations in the window: their mean (fuse.elevation_rule mean), or the mean of those off the maps' top layer (rule ground)", codec="lz4"),
+        ArraySpec(f"fused/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "max confidence in the window", codec="lz4"),
+        ArraySpec(f"fused/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "latest risk with confidence >= risk_min_conf", codec="lz4"),
         ArraySpec(f"fused/{_r}/count", "uint16", "(S, n, n)", "maps", _f, "0", "observations averaged into the elevation (rule ground: the ground ones where there are any)"),
-        ArraySpec(f"fused/{_r}/last_dt_s", "float32", "(S, n, n)", "s, rel. t", _f, "NaN", "stamp of the last observation minus t"),
+        ArraySpec(f"fused/{_r}/last_dt_s", "float32", "(S, n, n)", "s, rel. t", _f, "NaN", "stamp of the last observation minus t", codec="lz4"),
         ArraySpec(f"fused/{_r}/region", "uint8", "(S, n, n)", "code", _f, "0", "1 observed past/current, 2 observed future, 3 unobserved"),
-        ArraySpec(f"xracer/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "X-Racer map at t (latest stamped <= t), resampled"),
-        ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t"),
-        ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t"),
+        ArraySpec(f"xracer/{_r}/elevation_m", "float32", "(S, n, n)", "m, rel. base z at t", _f, "NaN", "X-Racer map at t (latest stamped <= t), resampled", codec="lz4"),
+        ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t", codec="lz4"),
+        ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t", codec="lz4"),
     ]
-FUSED = StoreFormat("gtgen-fused", 2, tuple(_FUSED), "gtgen fuse", config_sections=("grids", "topics", "extract", "mapping", "fuse"))
+FUSED = StoreFormat("gtgen-fused", 3, tuple(_FUSED), "gtgen fuse",
+                    "re-run 'gtgen fuse DRIVE --overwrite' (version 3 stores the float grids with lz4, faster to write and read)",
+                    config_sections=("grids", "topics", "extract", "mapping", "fuse"))
 
 
 # -- the dataset (``gtgen dem-align``, ``gtgen build``) ---------------------------------

@@ -25,6 +25,9 @@ class ArraySpec:
     # the ``shards.precision`` key whose step the values are stored at as CF packed
     # integers of ``dtype`` (``storage/packing.py``); "" for an array stored as it is
     packed: str = ""
+    # the codec of its chunks (``storage/codecs.py``'s CODECS) when not packed: "lz4" for
+    # the intermediate stores' float grids, read once by the next stage
+    codec: str = "zstd"
 
     def fill_value(self) -> object:
         """Return the fill value as a Python object for zarr (a packed array's NaN sentinel)."""

@@ -294,7 +294,7 @@ class StoreWriter:
         chunks = chunks or tuple(max(1, int(s)) for s in shape)
         keys = {"name": "default", "separator": "." if flat else "/"}
         return self.root.create_array(path, shape=shape, dtype=sp.dtype, chunks=chunks, shards=shards,
-                                      fill_value=sp.fill_value(), compressors=compressors("blosc" if packing else "zstd"), chunk_key_encoding=keys,
+                                      fill_value=sp.fill_value(), compressors=compressors("blosc" if packing else sp.codec), chunk_key_encoding=keys,
                                       dimension_names=dimension_names(sp), **kw)
 
     def write(self, path: str, value: Any, chunks: tuple[int, ...] | None = None) -> Any:
