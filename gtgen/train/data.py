@@ -44,20 +44,6 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
     return raw[np.ix_(ix, ix)]
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def decode_at(jpeg: bytes, width: int, height: int) -> tuple[NDArray[np.uint8], tuple[int, int]]:
     """Return a JPEG file decoded and resized to width x height (H, W, 3) RGB, and the
     source extent (width, height) [px of the stored image] the result spans, for
