@@ -59,15 +59,39 @@ def bilinear(grids: NDArray, rows: NDArray, cols: NDArray, outside: str = "nan")
     bilinear sampler of gtgen (DEM heights, the prior's pyramid, grid resampling)."""
     from scipy.ndimage import map_coordinates
 
-    r, c = np.broadcast_arrays(np.asarray(rows, np.float64), np.asarray(cols, np.float64))
-    coords = [r.ravel(), c.ravel()]
-    mode, cval = ("constant", np.nan) if outside == "nan" else ("nearest", 0.0)
     if outside not in ("nan", "edge"):
         raise ValueError(f"outside={outside!r}; expected 'nan' or 'edge'")
     g = np.asarray(grids)
+    rows, cols = np.asarray(rows, np.float64), np.asarray(cols, np.float64)
+    if outside == "edge" and rows.shape == (rows.size, 1) and cols.shape == (1, cols.size):
+        return _bilinear_outer(g, rows[:, 0], cols[0])
+    r, c = np.broadcast_arrays(rows, cols)
+    coords = [r.ravel(), c.ravel()]
+    mode, cval = ("constant", np.nan) if outside == "nan" else ("nearest", 0.0)
     flat = g.reshape(-1, *g.shape[-2:])
     out = np.stack([map_coordinates(x, coords, order=1, mode=mode, cval=cval, prefilter=False) for x in flat])
     return out.reshape(*g.shape[:-2], *r.shape)
+
+
+def _axis_taps(x: NDArray[np.float64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Return the two source cells and the upper one's weight of each coordinate ``x`` along
+    an axis of ``n`` cells, the edge cells extended beyond the outer centres."""
+    x = np.clip(x, 0.0, n - 1.0)
+    i0 = np.minimum(np.floor(x).astype(np.int64), max(n - 2, 0))
+    return i0, np.minimum(i0 + 1, n - 1), x - i0
+
+
+def _bilinear_outer(g: NDArray, rows: NDArray[np.float64], cols: NDArray[np.float64]) -> NDArray[np.floating]:
+    """``bilinear(g, rows[:, None], cols[None, :], outside="edge")`` on the grid of every
+    (row, col) pair, as two separable passes (gathers of whole rows, then of columns):
+    the same weights as the general sampler (its test oracle), a fraction of its time."""
+    g = np.asarray(g)
+    g = g.astype(np.result_type(g.dtype, np.float32), copy=False)  # float32 grids are sampled in float32, as map_coordinates does
+    r0, r1, a = _axis_taps(rows, g.shape[-2])
+    c0, c1, b = _axis_taps(cols, g.shape[-1])
+    a, b = a.astype(g.dtype), b.astype(g.dtype)
+    t = g[..., r0, :] * (1.0 - a)[:, None] + g[..., r1, :] * a[:, None]
+    return t[..., c0] * (1.0 - b) + t[..., c1] * b
 
 
 def resample_bilinear(grids: NDArray, size: int) -> NDArray[np.float32]:
@@ -134,18 +158,22 @@ def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
         return np.zeros(grid.shape, np.float32)
     n = grid.shape[0]
     level_wv = np.stack([ok.astype(np.float64), np.where(ok, grid, 0.0).astype(np.float64)])
-    out = np.full(grid.shape, np.nan)
+    out = np.where(ok, grid, np.nan).astype(np.float64)  # the valid cells are done
     sigma, level = 1.0, 0
-    while np.isnan(out).any() and sigma <= 2 * max(grid.shape):
+    while (rows := np.flatnonzero(np.isnan(out).any(axis=1))).size and sigma <= 2 * max(grid.shape):
         while sigma / 2**level > max_sigma_cells and level_wv.shape[1] > 4:
             level_wv = _pool2(level_wv)
             level += 1
-        den, num = smooth = np.stack([gaussian_filter(x, sigma / 2**level, mode="constant", truncate=3.0) for x in level_wv])
-        if level:  # the level's cells at the fine cell centres
+        smooth = np.stack([gaussian_filter(x, sigma / 2**level, mode="constant", truncate=3.0) for x in level_wv])
+        if level:  # the level's cells at the fine cell centres, on the rows still holding an empty cell
             x = (np.arange(n) + 0.5) / 2**level - 0.5
-            den, num = bilinear(smooth, x[:, None], x[None, :], outside="edge")
-        reach = np.isnan(out) & (den > 1e-3)
-        out[reach] = num[reach] / den[reach]
+            den, num = bilinear(smooth, x[rows][:, None], x[None, :], outside="edge")
+        else:
+            den, num = smooth[:, rows]
+        sub = out[rows]
+        reach = np.isnan(sub) & (den > 1e-3)
+        sub[reach] = num[reach] / den[reach]
+        out[rows] = sub
         sigma *= 2
     out[np.isnan(out)] = float(grid[ok].mean())
     out[ok] = grid[ok]

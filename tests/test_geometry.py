@@ -15,7 +15,7 @@ from gtgen.geometry import (
     slerp,
     yaw_transform,
 )
-from gtgen.grids import cell_centers, xy_to_index
+from gtgen.grids import bilinear, cell_centers, xy_to_index
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
 
@@ -62,3 +62,19 @@ def test_yaw_transform_moves_points(yaw, x, y):
     T = yaw_transform(x, y, 1.0, yaw)
     p = apply(T, np.array([[1.0, 0.0, 0.0]]))[0]
     np.testing.assert_allclose(p, [x + np.cos(yaw), y + np.sin(yaw), 1.0], atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1), st.sampled_from([np.float32, np.float64]))
+def test_bilinear_on_a_grid_of_coordinates_equals_the_general_sampler(n, m, seed, dtype):
+    """The separable pass (rows x cols of coordinates, edge cells extended) against
+    map_coordinates on the same coordinate pairs (its oracle), inside and beyond the grid."""
+    rng = np.random.default_rng(seed)
+    g = rng.normal(0, 10, (2, n, m)).astype(dtype)
+    r, c = rng.uniform(-2, n + 1, 7), rng.uniform(-2, m + 1, 5)
+    r[:2], c[:2] = (0, n - 1), (0, m - 1)  # the outer centres exactly
+    fast = bilinear(g, r[:, None], c[None, :], outside="edge")
+    R, C = np.broadcast_arrays(r[:, None], c[None, :])
+    general = bilinear(g, R.copy(), C.copy(), outside="edge")
+    assert fast.shape == general.shape == (2, 7, 5) and fast.dtype == general.dtype
+    np.testing.assert_allclose(fast, general, rtol=0, atol=1e-4 if dtype == np.float32 else 1e-10)
