@@ -328,6 +328,8 @@ class DemConfig(_Model):
     tile_offset_min_m: float = Field(0.5, ge=0, description="a tile is put back horizontally when its measured offset exceeds this and twice its uncertainty [m]")
     tile_offset_min_z_m: float = Field(0.1, ge=0, description="a tile is put back vertically when its measured offset exceeds this and twice its uncertainty [m]")
     max_tile_offset_m: float = Field(10.0, gt=0, description="a tile's offset is searched within this horizontally (and tiles whose files leave a gap this wide still neighbour) [m]")
+    tile_track_min_m: float = Field(1.0, gt=0, description="a tile is read put back when the drive's placements over it stand farther than this from those over its other tiles, and farther than drift_allowance times the travel between them: a shift its borders could not see (smooth ground) that ICP followed [m]")
+    tile_track_samples: int = Field(5, ge=1, description="kept samples over a tile (the base's position on it) before its placements are compared with the other tiles'")
     max_border_step_m: float = Field(0.15, gt=0, description="a tile whose heights step by more than this (spread about the median step) across its borders with its neighbours at every offset is set aside: another place [m]")
 
 class ReportConfig(_Model):

@@ -271,6 +271,55 @@ def test_a_shifted_tile_is_measured_and_put_back_and_another_place_set_aside(dat
     assert set(res.rejected) <= {"suspect_tile"}, res.rejected  # samples mostly on the foreign tile, beyond carry_over_m
 
 
+def _two_tiles(src, dst, T_crs_target, shift_m):
+    """Write the DEM of ``src`` as two tiles split across the drive's main direction at its
+    middle (``T_crs_target``: the placements), the second one's file ``shift_m`` (dx, dy) off."""
+    from rasterio.merge import merge
+
+    files = [rasterio.open(p) for p in sorted(src.glob("*.tif"))]
+    data, t = merge(files)
+    prof = files[0].profile
+    for f in files:
+        f.close()
+    data = data[0]
+    E, N = T_crs_target[:, 0, 3], T_crs_target[:, 1, 3]
+    dst.mkdir()
+    along_e = np.ptp(E) >= np.ptp(N)
+    cut = int(round((np.median(E) - t.c) / t.a)) if along_e else int(round((np.median(N) - t.f) / t.e))
+    parts = [(data[:, :cut], t), (data[:, cut:], t @ rasterio.Affine.translation(cut, 0))] if along_e else \
+            [(data[:cut], t), (data[cut:], t @ rasterio.Affine.translation(0, cut))]
+    for i, (z, tr) in enumerate(parts):
+        if i:
+            tr = rasterio.Affine(tr.a, 0, tr.c + shift_m[0], 0, tr.e, tr.f + shift_m[1])
+        with rasterio.open(dst / f"USGS_1M_10_part{i}.tif", "w", **{**prof, "width": z.shape[1], "height": z.shape[0], "transform": tr}) as out:
+            out.write(z, 1)
+
+
+def test_a_shift_the_borders_miss_is_put_back_by_the_drives_track(dataset, drive_dir, drive_store, fused_store, cfg, tmp_path):
+    """The drive's DEM as two tiles, the second 2.5 m off and its borders told not to see it
+    (as on smooth ground): ICP follows it, and the placements over it stand off those over
+    the first beyond odometry's drift; dem-align reads it put back by that difference, every
+    sample kept (the old chain carried the shift into the placements)."""
+    from gtgen.config import load_config
+    from gtgen.report.rejections import rejection_truth
+    from gtgen.synth.truth import Truth
+
+    ref = DatasetStore(dataset)
+    _two_tiles(drive_dir / "dem", tmp_path / "dem", ref.meta("T_crs_target"), (2.5, 0.0))
+    blind = load_config(None, cfg.model_dump(mode="json"), {"dem": {"tile_border_gain": 1e6}})  # borders never put a tile back
+    run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", blind, workers=1)
+    ds = DatasetStore(tmp_path / "ds.zarr")
+    s = next(t for t in ds.info.drives[0].tiles if "part1" in t.path)
+    assert s.status == "corrected" and "placements" in s.reason and np.hypot(*s.applied_m[:2]) > 1.0, s
+    truth = {0: Truth.find([b.path for b in ds.info.drives[0].bags])}
+    r = rejection_truth(ds, blind, truth)
+    # as the old chain left it: median 1.66 m, max 1.94 m; on this 8 s drive every sample's
+    # short grid spans both tiles, so ICP follows the shift part of the way and the track
+    # measures it part of the way (median 0.87 m, max 1.18 m after; 0.11 / 0.34 m unaltered)
+    assert r["placement_error"]["horizontal_m"]["median"] < 1.0 and r["placement_error"]["horizontal_m"]["max"] < 1.5, r
+    assert sum(r["confusion"]["kept"].values()) == ref.n_samples, r
+
+
 def _write_tiles(folder, f, shifts=None, size=120, noise=0.03, seed=0):
     """Write a 3 x 3 mosaic of ``size`` m tiles of the terrain f(E, N) (1 m pixels, EPSG:26910);
     ``shifts``: {(col, row): (dx, dy, dz)} tiles that show at (E + dx, N + dy) the ground of
@@ -348,3 +397,51 @@ def test_paged_dem_reads_equal_the_direct_merge(drive_dir, crs, offsets):
         tol = 1e-4 if crs != "EPSG:26910" and offsets else 0.0  # float32 rounding of a reprojected tile put back
         np.testing.assert_allclose(a, d, atol=tol, rtol=0)
         np.testing.assert_array_equal(np.isnan(a), np.isnan(d))
+
+
+def test_the_track_puts_back_the_tile_whose_placements_stand_off_the_others(cfg):
+    """Placements over a tile that stand off those over the drive's other tiles beyond
+    odometry's drift put that tile back by the difference; which of two is off, GNSS (within
+    its stated sigma) and the borders tell; of three, the two that agree win; tiles that
+    agree, or differ within drift_allowance times the travel between them, stay as they are."""
+    from gtgen.dem.borders import BorderFit
+    from gtgen.dem.judge import TileJudgement
+    from gtgen.dem.track import judge_track, tile_tracks
+
+    dc = cfg.dem
+    names = ["a.tif", "b.tif", "c.tif"]
+    rng = np.random.default_rng(0)
+
+    def tracks(deltas, gnss, dist=(50.0, 150.0, 250.0)):
+        n = 30
+        tile = np.repeat(np.arange(len(deltas)), n)
+        d = np.repeat(np.asarray(dist[: len(deltas)]), n) + rng.uniform(-20, 20, n * len(deltas))
+        delta = np.repeat(np.asarray(deltas, float), n, axis=0) + rng.normal(0, 0.1, (n * len(deltas), 2))
+        g = np.repeat(np.asarray(gnss, float), n, axis=0) + rng.normal(0, 0.1, (n * len(deltas), 2))
+        return tile_tracks(tile, d, delta, g, dc.tile_track_samples)
+
+    ok = {i: TileJudgement(i, n, "ok", None) for i, n in enumerate(names)}
+    # GNSS biased 1 m east everywhere; tile b 3.6 m east of where it belongs: b is put back by its 3.6 m
+    out, back = judge_track(ok, names, tracks([(0.5, 0.2), (4.1, 0.2)], [(1.0, 0.0), (4.6, 0.0)]), 1.5, dc)
+    assert set(back) == {1} and out[1].status == "corrected" and out[0].status == "ok", out
+    np.testing.assert_allclose([back[1].dx, back[1].dy, back[1].dz], [3.6, 0.0, 0.0], atol=0.1)
+    assert "put back" in out[1].reason
+    # the same placements, but GNSS sides with b (a is the one off): a is put back by -3.6 m
+    out, back = judge_track(ok, names, tracks([(0.5, 0.2), (4.1, 0.2)], [(-3.0, 0.0), (0.6, 0.0)]), 1.5, dc)
+    assert set(back) == {0} and back[0].dx == pytest.approx(-3.6, abs=0.1)
+    # GNSS cannot tell (its bias halfway): the borders can, a tile's measured offset within its sigma
+    half = [(-1.8, 0.0), (1.8, 0.0)]
+    b_off = BorderFit(40, 0.1, 0.05, np.array([3.0, 0.0, 0.0]), np.array([1.5, 1.5, 0.05]))
+    a_ok = BorderFit(40, 0.05, 0.05, np.zeros(3), np.array([1.5, 1.5, 0.05]))
+    judged = {0: TileJudgement(0, "a.tif", "ok", a_ok), 1: TileJudgement(1, "b.tif", "ok", b_off)}
+    _, back = judge_track(judged, names, tracks([(0.5, 0.2), (4.1, 0.2)], half), 1.5, dc)
+    assert set(back) == {1}
+    # three tiles, the middle one off: the two that agree win whatever GNSS says
+    _, back = judge_track(ok, names, tracks([(0.0, 0.0), (0.0, -3.0), (0.2, 0.1)], [(0.0, -3.0)] * 3), 1.5, dc)
+    assert set(back) == {1} and back[1].dy == pytest.approx(-3.0, abs=0.15)
+    # agreeing tiles, and a difference within the drift allowed over 400 m of travel: nothing put back
+    assert judge_track(ok, names, tracks([(0.5, 0.2), (0.9, -0.3)], [(0.0, 0.0)] * 2), 1.5, dc)[1] == {}
+    assert judge_track(ok, names, tracks([(0.0, 0.0), (3.0, 0.0)], [(0.0, 0.0)] * 2, dist=(50.0, 450.0)), 1.5, dc)[1] == {}
+    # too few samples over a tile: not judged
+    assert judge_track(ok, names, tile_tracks(np.array([0] * 30 + [1] * 3), np.zeros(33), np.r_[np.zeros((30, 2)), np.full((3, 2), 5.0)],
+                                              np.zeros((33, 2)), dc.tile_track_samples), 1.5, dc)[1] == {}

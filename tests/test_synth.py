@@ -217,6 +217,12 @@ def test_fast_sampling_and_marching_equal_their_oracles(drive_dir, cfg):
     # on tile nodes the bilinear sample is the exact evaluation
     g = terrain.eval_grid(c[0] - 3.0, c[1] - 3.0, 0.1, 20, 20)
     uu, vv = np.meshgrid(c[0] - 3.0 + (np.arange(20) + 0.5) * 0.1, c[1] - 3.0 + (np.arange(20) + 0.5) * 0.1, indexing="ij")
+    # the grid form of the smooth ground (one matrix product of the waves) is the pointwise one
+    # (its oracle), here across a ditch's line too
+    pt = terrain._ditch_pt[0]
+    gu, gv = pt[0] - 30 + np.arange(300) * 0.2, pt[1] - 20 + np.arange(200) * 0.2
+    GU, GV = np.meshgrid(gu, gv, indexing="ij")
+    assert np.abs(terrain.smooth_grid(gu, gv) - terrain.smooth(GU, GV)).max() < 1e-9
     assert np.abs(terrain.sample(uu, vv, ("ground",))[0] - g["ground"]).max() < 2e-3
 
     raster = RenderRaster(terrain, (c[0] - 200, c[1] - 200, c[0] + 200, c[1] + 200))

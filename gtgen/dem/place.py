@@ -101,8 +101,10 @@ def vegetation(d: NDArray, mask: NDArray, vegetation_m: float) -> NDArray[np.boo
 class DrivePlacement:
     """A drive's placement in the DEM's CRS, refined sample by sample (see ``place``)."""
 
-    def __init__(self, cfg: GtgenConfig, dem: DemSource, fit: PlanarFit, dz_dem: float, gnss: tuple[NDArray, NDArray]) -> None:
+    def __init__(self, cfg: GtgenConfig, dem: DemSource, fit: PlanarFit, dz_dem: float, gnss: tuple[NDArray, NDArray],
+                 gnss_sd_m: float = np.nan) -> None:
         self.cfg, self.dem, self.fit, self.dz_dem = cfg, dem, fit, dz_dem
+        self.gnss_sd_m = gnss_sd_m  # the fixes' stated horizontal std per axis [m] (median; NaN: not stated)
         gs = cfg.grids.short
         self.X, self.Y = grid_xy(gs.size, gs.resolution_m)
         self.T_prior = yaw_transform(fit.tx, fit.ty, dz_dem, fit.yaw)  # T_crs_odom
@@ -124,7 +126,9 @@ class DrivePlacement:
         _check_overlap(dem, fit, track, dem_dir)
         gs = cfg.grids.short
         dz = _dz_against_dem(dem, fit, *grid_xy(gs.size, gs.resolution_m), drive.samples, fused)
-        return cls(cfg, dem, fit, dz, gnss_fixes(fixes, track, dem.crs))
+        var = fixes.var_enu_m2[fixes.usable, :2].mean(axis=1) if len(fixes.t_ns) else np.zeros(0)
+        var = var[np.isfinite(var) & (var > 0)]
+        return cls(cfg, dem, fit, dz, gnss_fixes(fixes, track, dem.crs), float(np.sqrt(np.median(var))) if len(var) else np.nan)
 
     def without(self, tiles: frozenset[int]) -> DrivePlacement:
         """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
@@ -135,7 +139,7 @@ class DrivePlacement:
         """Return a fresh placement of the drive (same GNSS fit and vertical offset) that does
         not read ``tiles`` either, and reads the tiles of ``offsets`` put back (these alone;
         None: the same as this one)."""
-        return DrivePlacement(self.cfg, self.dem.adjusted(tiles, offsets), self.fit, self.dz_dem, (self.gnss_t, self.gnss_xy))
+        return DrivePlacement(self.cfg, self.dem.adjusted(tiles, offsets), self.fit, self.dz_dem, (self.gnss_t, self.gnss_xy), self.gnss_sd_m)
 
     @property
     def geoid_offset_m(self) -> float:
@@ -191,6 +195,21 @@ class DrivePlacement:
             self.T_prior = T @ invert(T_odom_target)
             self.chained, self.kept_at_m = True, distance_m
         return Placement(reason, res, T, sig)
+
+    def track_offsets(self, T: NDArray, T_odom_target: NDArray, t_ns: int) -> tuple[NDArray, NDArray]:
+        """Return a placement ``T`` (of the target at ``T_odom_target`` in odom, time ``t_ns``)
+        as its horizontal offsets (E, N) [m]: from the drive's GNSS fit carried by odometry, and
+        from the window's GNSS fixes (their median offset; NaN with fewer than
+        ``dem.min_window_fixes``)."""
+        dc = self.cfg.dem
+        P = yaw_transform(self.fit.tx, self.fit.ty, self.dz_dem, self.fit.yaw) @ T_odom_target
+        win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
+        g = np.full(2, np.nan)
+        if win.sum() >= dc.min_window_fixes:
+            T_crs_odom = T @ invert(T_odom_target)
+            xy = self.gnss_xy[win]
+            g = np.median(xy[:, :2] @ T_crs_odom[:2, :2].T + T_crs_odom[:2, 3] - xy[:, 2:], axis=0)
+        return T[:2, 3] - P[:2, 3], g
 
     def _icp(self, k: int, src_mask: NDArray, elev: NDArray, dem: NDArray, coarse: bool = False) -> IcpResult:
         """ICP of the masked observed cells onto the DEM patch; ``coarse`` first matches within

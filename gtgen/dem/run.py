@@ -5,7 +5,8 @@ decides is written by ``gtgen.dataset.dem_align``).
 the drive (GNSS fit, coverage, vertical offset), judge the tiles near it by their borders
 (``gtgen.dem.judge``: put back the shifted ones, set aside those of another place), run the
 ICP chain over the samples, and when the drive's observed ground disagrees with a tile, set
-it aside and run the chain again.
+it aside and run the chain again; when the placements over a tile stand off those over the
+others beyond odometry's drift (``gtgen.dem.track``), put it back and run the chain again.
 """
 
 from __future__ import annotations
@@ -24,9 +25,15 @@ from gtgen.dem.fit import gnss_lonlat
 from gtgen.dem.judge import TileJudgement, judge_borders, judge_ground, tiles_near
 from gtgen.dem.place import DrivePlacement, Placement
 from gtgen.dem.tiles import DemMosaic, DemRef, TileIndex
+from gtgen.dem.track import TileTrack, judge_track, tile_tracks
+from gtgen.geometry import yaw_transform
 from gtgen.runtime.progress import track
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedStore
+
+TRACK_PASSES = 3  # at most this many placements of the drive again with tiles its track puts back
+TRACK_REACH_M = 40.0  # a sample's placement speaks for the tile under it when TRACK_SHARE of its ground
+TRACK_SHARE = 0.75  # this far around (a square of that half-edge) lies on it [m]
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,13 @@ def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: Gtg
         if more:  # the drive's ground disagrees with tiles the borders kept: place it again without them
             placement = placement.without(more)
             outcomes, fitness = _icp_chain(drive, fused, placement)
+        for _ in range(TRACK_PASSES):  # ICP follows a shifted tile part of the way: what is left shows on the next pass
+            tiles, back = judge_track(tiles, placement.dem.tile_names, _tracks(placement, outcomes, drive), placement.gnss_sd_m, cfg.dem)
+            if not back:
+                break
+            # the placements over a tile stand off the others' beyond odometry's drift: place the drive again, the tile put back
+            placement = placement.adjusted(frozenset(), {**placement.dem.offsets, **back})
+            outcomes, fitness = _icp_chain(drive, fused, placement)
         dem = placement.dem
         ref = DemRef(str(dem_source), str(cache) if cache else None, crs, dem.exclude, tuple(sorted(dem.offsets.items())))
         yield Alignment(placement, outcomes, dem.exclude, fitness, ref, [tiles[i] for i in sorted(tiles)])
@@ -103,6 +117,25 @@ def _near(placement: DrivePlacement, drive: DriveStore, cfg: GtgenConfig) -> lis
     en = placement.fit.apply_xy(drive.samples.pos_odom_m[:, :2])
     half = cfg.grids.short.size * cfg.grids.short.resolution_m / 2
     return tiles_near(placement.dem, en, half * np.sqrt(2) + cfg.dem.max_correction_m)
+
+
+def _tracks(placement: DrivePlacement, outcomes: list[Outcome], drive: DriveStore) -> list[TileTrack]:
+    """Return the kept ICP placements grouped by the tile under the base (``gtgen.dem.track``),
+    of the samples whose ground within TRACK_REACH_M lies on that tile (ICP of a sample over
+    two tiles is a compromise between them)."""
+    kept = [o for o in outcomes if isinstance(o.placement, Placement) and o.placement.reason == codes.OK and o.placement.icp is not None]
+    if not kept:
+        return []
+    T = np.stack([o.placement.T_crs_target for o in kept])
+    off = [placement.track_offsets(Tk, yaw_transform(*o.pos_odom_m, o.yaw_odom_rad), o.t_ns) for Tk, o in zip(T, kept)]
+    tile = placement.dem.tile_of(T[:, 0, 3], T[:, 1, 3])
+    ring = np.linspace(-TRACK_REACH_M, TRACK_REACH_M, 9)
+    rx, ry = (a.ravel() for a in np.meshgrid(ring, ring))
+    around = placement.dem.tile_of((T[:, 0, 0, None] * rx + T[:, 0, 1, None] * ry + T[:, 0, 3, None]).ravel(),
+                                   (T[:, 1, 0, None] * rx + T[:, 1, 1, None] * ry + T[:, 1, 3, None]).ravel()).reshape(len(T), -1)
+    tile = np.where((around == tile[:, None]).mean(axis=1) >= TRACK_SHARE, tile, -1)
+    dist = drive.samples.distance_m[[o.k for o in kept]]
+    return tile_tracks(tile, dist, np.stack([d for d, _ in off]), np.stack([g for _, g in off]), placement.cfg.dem.tile_track_samples)
 
 
 def _icp_chain(drive: DriveStore, fused: FusedStore, placement: DrivePlacement) -> tuple[list[Outcome], list[float]]:

@@ -208,6 +208,25 @@ class Terrain:
             h -= depth * np.exp(-0.5 * (dn / w) ** 2)
         return h
 
+    def smooth_grid(self, u: NDArray, v: NDArray) -> NDArray[np.float64]:
+        """Return ``smooth`` on the grid of ``u`` (nu,) x ``v`` (nv,), (nu, nv): each wave
+        sin(a_i + b_j) as sin a_i cos b_j + cos a_i sin b_j, all waves in one matrix product
+        (trigonometry per row and column, not per cell), and each ditch only on the cells
+        within 8.5 widths of its line (beyond, its Gaussian is below 1e-15 of its depth).
+        Equal to ``smooth`` (the oracle) within 1e-9 m."""
+        a = np.outer(u, self._wave_k[:, 0])  # (nu, waves)
+        b = np.outer(v, self._wave_k[:, 1]) + self._wave_phase  # (nv, waves)
+        amp = self._wave_amp
+        h = np.hstack([np.sin(a) * amp, np.cos(a) * amp]) @ np.vstack([np.cos(b).T, np.sin(b).T]) + BASE_HEIGHT_M
+        n = np.array([-self._valley_dir[1], self._valley_dir[0]])
+        d = ((u - self._valley_pt[0]) * n[0])[:, None] + ((v - self._valley_pt[1]) * n[1])[None, :]
+        h -= self.cfg.valley_depth_m * np.exp(-0.5 * (d / 45.0) ** 2)
+        for dd, pt, depth, w in zip(self._ditch_dir, self._ditch_pt, self._ditch_depth, self._ditch_width):
+            dn = ((u - pt[0]) * -dd[1])[:, None] + ((v - pt[1]) * dd[0])[None, :]
+            near = np.abs(dn) < 8.5 * w
+            h[near] -= depth * np.exp(-0.5 * (dn[near] / w) ** 2)
+        return h
+
     def eval_grid(self, u0: float, v0: float, res: float, nu: int, nv: int, surveyed: bool = False) -> dict[str, NDArray[np.float32]]:
         """Return exact layers on the grid of cell centres u0 + (i + .5) res, v0 + (j + .5) res.
 
@@ -218,7 +237,7 @@ class Terrain:
         u = u0 + (np.arange(nu) + 0.5) * res
         v = v0 + (np.arange(nv) + 0.5) * res
         U, V = np.meshgrid(u, v, indexing="ij")
-        bare = self.smooth(U, V)
+        bare = self.smooth_grid(u, v)
         if len(self.changes.dh) and not surveyed:
             bare += self.changes.height(U, V)
         ground = bare.copy()
