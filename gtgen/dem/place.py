@@ -107,7 +107,8 @@ class DrivePlacement:
         self.gnss_sd_m = gnss_sd_m  # the fixes' stated horizontal std per axis [m] (median; NaN: not stated)
         gs = cfg.grids.short
         self.X, self.Y = grid_xy(gs.size, gs.resolution_m)
-        self.T_prior = yaw_transform(fit.tx, fit.ty, dz_dem, fit.yaw)  # T_crs_odom
+        self.T_fit = yaw_transform(fit.tx, fit.ty, dz_dem, fit.yaw)  # T_crs_odom of the GNSS fit
+        self.T_prior = self.T_fit  # T_crs_odom the next sample starts from
         self.chained = False  # the prior is a kept sample's placement (else the GNSS fit's)
         self.kept_at_m = 0.0  # odometry distance of the last kept sample
         self.gnss_t, self.gnss_xy = gnss  # (t_ns, (odom x, y, CRS E, N)) of the usable fixes
@@ -201,15 +202,20 @@ class DrivePlacement:
         as its horizontal offsets (E, N) [m]: from the drive's GNSS fit carried by odometry, and
         from the window's GNSS fixes (their median offset; NaN with fewer than
         ``dem.min_window_fixes``)."""
+        r = self._fix_residuals(T, T_odom_target, t_ns)
+        g = np.median(r, axis=0) if r is not None else np.full(2, np.nan)
+        return T[:2, 3] - (self.T_fit @ T_odom_target)[:2, 3], g
+
+    def _fix_residuals(self, T: NDArray, T_odom_target: NDArray, t_ns: int) -> NDArray | None:
+        """Return the window's GNSS fixes at placement ``T`` less where GNSS put them, (n, 2)
+        (E, N) [m]; None with fewer than ``dem.min_window_fixes``."""
         dc = self.cfg.dem
-        P = yaw_transform(self.fit.tx, self.fit.ty, self.dz_dem, self.fit.yaw) @ T_odom_target
         win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
-        g = np.full(2, np.nan)
-        if win.sum() >= dc.min_window_fixes:
-            T_crs_odom = T @ invert(T_odom_target)
-            xy = self.gnss_xy[win]
-            g = np.median(xy[:, :2] @ T_crs_odom[:2, :2].T + T_crs_odom[:2, 3] - xy[:, 2:], axis=0)
-        return T[:2, 3] - P[:2, 3], g
+        if win.sum() < dc.min_window_fixes:
+            return None
+        T_crs_odom = T @ invert(T_odom_target)
+        xy = self.gnss_xy[win]
+        return xy[:, :2] @ T_crs_odom[:2, :2].T + T_crs_odom[:2, 3] - xy[:, 2:]
 
     def _icp(self, k: int, src_mask: NDArray, elev: NDArray, dem: NDArray, coarse: bool = False) -> IcpResult:
         """ICP of the masked observed cells onto the DEM patch; ``coarse`` first matches within
@@ -235,12 +241,8 @@ class DrivePlacement:
         g = ground & np.isfinite(aligned)
         dev = np.abs(elev[g] - aligned[g])
         win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
-        offset = np.nan
-        if win.sum() >= dc.min_window_fixes:
-            T_crs_odom = T @ invert(T_odom_target)
-            xy = self.gnss_xy[win]
-            placed = xy[:, :2] @ T_crs_odom[:2, :2].T + T_crs_odom[:2, 3]
-            offset = float(np.median(np.linalg.norm(placed - xy[:, 2:], axis=1)))
+        r = self._fix_residuals(T, T_odom_target, t_ns)
+        offset = float(np.median(np.linalg.norm(r, axis=1))) if r is not None else np.nan
         return {"correction_xy_m": float(np.hypot(C[0, 3], C[1, 3])), "correction_z_m": float(abs(C[2, 3])),
                 "correction_yaw_deg": float(abs(np.degrees(np.arctan2(C[1, 0], C[0, 0])))),
                 "disagreement": float((dev > dc.disagreement_m).mean()) if len(dev) else (1.0 if res is not None else np.nan),

@@ -110,8 +110,7 @@ def _evidence(tracks: list[TileTrack], off: dict[int, NDArray], tiles: dict[int,
 def judge_track(tiles: dict[int, TileJudgement], names: list[str], tracks: list[TileTrack], sigma_gnss_m: float,
                 dc: DemConfig) -> tuple[dict[int, TileJudgement], dict[int, TileOffset]]:
     """Return the judgements (``names``: every tile's, by index) with the tiles the track
-    puts back, and those tiles' offsets
-    (added to any they are read put back by already). The tiles where the drive truly is are
+    puts back, and those tiles' offsets (added to any they are read put back by already). The tiles where the drive truly is are
     the largest set of tiles that agree with each other (``_agree``), and of sets as large,
     the one the GNSS fixes and the borders make likeliest; every other tile is off by its
     placements' difference from that set's nearest tile."""
