@@ -442,6 +442,8 @@ def test_the_track_puts_back_the_tile_whose_placements_stand_off_the_others(cfg)
     # agreeing tiles, and a difference within the drift allowed over 400 m of travel: nothing put back
     assert judge_track(ok, names, tracks([(0.5, 0.2), (0.9, -0.3)], [(0.0, 0.0)] * 2), 1.5, dc)[1] == {}
     assert judge_track(ok, names, tracks([(0.0, 0.0), (3.0, 0.0)], [(0.0, 0.0)] * 2, dist=(50.0, 450.0)), 1.5, dc)[1] == {}
+    # nothing to tell which of two is off (no fixes, no stated sigma, no borders): neither is guessed
+    assert judge_track(ok, names, tracks([(0.5, 0.2), (4.1, 0.2)], [(np.nan, np.nan)] * 2), np.nan, dc)[1] == {}
     # too few samples over a tile: not judged
     assert judge_track(ok, names, tile_tracks(np.array([0] * 30 + [1] * 3), np.zeros(33), np.r_[np.zeros((30, 2)), np.full((3, 2), 5.0)],
                                               np.zeros((33, 2)), dc.tile_track_samples), 1.5, dc)[1] == {}

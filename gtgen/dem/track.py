@@ -117,7 +117,10 @@ def judge_track(tiles: dict[int, TileJudgement], names: list[str], tracks: list[
     if len(tracks) < 2 or all(_agree(a, b, dc) for a, b in combinations(tracks, 2)):
         return tiles, {}
     groups = {frozenset(t.index for t in tracks if _agree(s, t, dc)) for s in tracks}
-    best = max(groups, key=lambda g: (len(g), _evidence(tracks, _offsets(tracks, set(g), dc.tile_track_samples), tiles, sigma_gnss_m)))
+    score = {g: (len(g), _evidence(tracks, _offsets(tracks, set(g), dc.tile_track_samples), tiles, sigma_gnss_m)) for g in groups}
+    best = max(groups, key=score.get)
+    if any(g != best and score[g][0] == score[best][0] and score[best][1] - score[g][1] < 1e-9 for g in groups):
+        return tiles, {}  # nothing tells which is off (no GNSS sigma or fixes, no border): left as they are, not guessed
     out, back = dict(tiles), {}
     for i, d in _offsets(tracks, set(best), dc.tile_track_samples).items():
         if i in best:
