@@ -455,6 +455,7 @@ class MappingConfig(_Model):
     max_roughness_m: float = Field(0.2, gt=0, description="ground roughness (std in neighbourhood_m) this large is fatal [m]")
     neighbourhood_m: float = Field(0.6, gt=0, description="edge of the neighbourhood of step and roughness [m]")
     ground_window_m: float = Field(2.0, gt=0, description="edge of the window of the local ground [m]: what stands on the ground narrower than this (a rock, a trunk) is taken off it and judged by its own height, wider relief is terrain judged by step, slope and roughness, so a rock's neighbours are not fatal; about the vehicle's track, the width its wheels straddle")
+    cover_cell_m: float | None = Field(0.2, gt=0, description="a cell coarser than this is as high as what covers half of it: its points' tops are kept per sub-cell of about this edge, and its height is the top that half of its seen sub-cells reach, so a 0.8 m cell whose corner a crown or a rock's side crosses is not an obstacle, one the obstacle covers is [m]; null: the cell's highest point")
     voxel_m: float = Field(0.4, gt=0, description="voxel edge of the voxel map made from lidar (topics.voxel_map: null) [m]; it holds the voxels seen in the last memory_s within the short grid")
 
     @model_validator(mode="after")

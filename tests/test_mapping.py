@@ -26,9 +26,9 @@ def _pose(x: float, y: float, z: float = 0.0) -> np.ndarray:
     return T
 
 
-def naive_cells(sweeps, n: int, res: float, m: MappingConfig, t_ns: int, center) -> dict:
+def naive_cells(sweeps, n: int, res: float, m: MappingConfig, t_ns: int, center, sub: int = 1) -> dict:
     """The cell statistics by the rules of gtgen.mapping.cells, cell by cell and sweep by
-    sweep, in plain Python: the oracle of RollingCells."""
+    sweep, in plain Python: the oracle of RollingCells (with ``sub`` x ``sub`` sub-cell tops)."""
     state: dict[tuple[int, int], dict] = {}
     for pts, rng, c, t in sweeps:
         k = np.floor(pts[:, :2] / res).astype(int)
@@ -41,25 +41,28 @@ def naive_cells(sweeps, n: int, res: float, m: MappingConfig, t_ns: int, center)
             slot = (key[0] % n, key[1] % n)
             s = state.get(slot)
             if s is None or s["key"] != key or t - s["t"] > m.memory_s * 1e9:
-                s = {"key": key, "zmin": np.inf, "sum": 0.0, "n": 0, "top": -np.inf, "r": np.inf}
+                s = {"key": key, "zmin": np.inf, "sum": 0.0, "n": 0, "top": -np.inf, "r": np.inf, "sub": {}}
             z = [float(pts[i, 2]) for i in idx]
             low = min(z)
             if low < s["zmin"] - m.ground_band_m or (low > s["zmin"] + m.ground_band_m and s["n"] < m.min_points):
-                s.update(zmin=low, sum=0.0, n=0, top=-np.inf)
+                s.update(zmin=low, sum=0.0, n=0, top=-np.inf, sub={})
             else:
                 s["zmin"] = min(s["zmin"], low)
-            for zi in z:
+            for i, zi in zip(idx, z):
                 if zi <= s["zmin"] + m.ground_band_m:
                     s["sum"] += zi
                     s["n"] += 1
                 if zi <= s["zmin"] + m.overhang_m:
                     s["top"] = max(s["top"], zi)
+                    q = (min(int(pts[i, 0] / res * sub - key[0] * sub), sub - 1), min(int(pts[i, 1] / res * sub - key[1] * sub), sub - 1))
+                    s["sub"][q] = max(s["sub"].get(q, -np.inf), zi)
             s["r"] = min(s["r"], min(float(rng[i]) for i in idx))
             s["t"] = t
             state[slot] = s
     x0, y0 = int(np.floor(center[0] / res)) - n // 2, int(np.floor(center[1] / res)) - n // 2
     ground = np.full((n, n), np.nan)
     count = np.zeros((n, n), int)
+    subtop = np.full((n, n, sub * sub), -np.inf)
     for i in range(n):
         for j in range(n):
             key = (x0 + i, y0 + j)
@@ -69,14 +72,19 @@ def naive_cells(sweeps, n: int, res: float, m: MappingConfig, t_ns: int, center)
             if s["n"] >= m.min_points:
                 ground[i, j] = s["sum"] / s["n"]
                 count[i, j] = s["n"]
-    return {"ground": ground, "n": count}
+                for (a, b), v in s["sub"].items():
+                    subtop[i, j, a * sub + b] = v
+    return {"ground": ground, "n": count, "subtop": subtop}
 
 
-def test_rolling_cells_equal_the_naive_oracle_as_the_vehicle_drives_and_forgets():
+@pytest.mark.parametrize("cover", [None, 0.25, 0.15])
+def test_rolling_cells_equal_the_naive_oracle_as_the_vehicle_drives_and_forgets(cover):
     rng = np.random.default_rng(3)
-    m = MappingConfig(memory_s=0.35, min_points=2)
+    m = MappingConfig(memory_s=0.35, min_points=2, cover_cell_m=cover)
     n, res = 20, 0.5
     cells = RollingCells(n, res, m)
+    sub = {None: 1, 0.25: 2, 0.15: 3}[cover]
+    assert cells.sub == sub
     sweeps = []
     for s in range(8):  # 0.1 s apart, 1.5 m of travel each: the ring wraps and old cells expire
         c = np.array([1.5 * s, 0.3 * s])
@@ -87,9 +95,14 @@ def test_rolling_cells_equal_the_naive_oracle_as_the_vehicle_drives_and_forgets(
         sweeps.append((pts, r, c, t))
     for center in (np.array([10.5, 2.1]), np.array([8.0, 1.0])):
         got = cells.crop(center, n, sweeps[-1][3])
-        want = naive_cells(sweeps, n, res, m, sweeps[-1][3], center)
+        want = naive_cells(sweeps, n, res, m, sweeps[-1][3], center, sub)
         np.testing.assert_array_equal(got["n"], want["n"])
         np.testing.assert_allclose(got["ground"], want["ground"], atol=1e-9)
+        if sub > 1:
+            np.testing.assert_allclose(got["subtop"], want["subtop"], atol=1e-6)
+            assert np.isfinite(want["subtop"]).sum() > 200 and np.isinf(want["subtop"][np.isfinite(want["ground"])]).any()
+        else:
+            assert "subtop" not in got
         assert np.isfinite(want["ground"]).sum() > 50  # the test sees cells, old ones forgotten
         assert (want["n"] == 0).sum() > 50
 
@@ -362,3 +375,46 @@ def test_a_box_on_a_slope_is_fatal_and_the_ground_around_it_is_not(res):
     assert lay.risk[rest].max() < 0.5 and np.isnan(lay.risk[0, 0])
     old = _old_rule_risk(ground, top, cfg, res)
     assert (old[ring] >= 0.5).mean() > 0.5  # the ring the old rule made (and a wide box's middle it missed)
+
+
+def test_half_cover_top_equals_its_cell_by_cell_oracle():
+    from gtgen.mapping.layers import half_cover_top, half_cover_top_naive
+
+    rng = np.random.default_rng(5)
+    sub = rng.normal(0, 1, (9, 7, 16)).astype(np.float32)
+    sub[rng.random(sub.shape) < 0.4] = -np.inf
+    sub[0, 0] = -np.inf  # a cell none of whose sub-cells is seen
+    sub[1, 1, 1:] = -np.inf  # one seen: its top
+    np.testing.assert_array_equal(half_cover_top(sub), half_cover_top_naive(sub))
+    assert np.isnan(half_cover_top(sub)[0, 0]) and half_cover_top(sub)[1, 1] == sub[1, 1, 0]
+
+
+@pytest.mark.parametrize("cover", [0.2, None])
+def test_a_coarse_cell_is_an_obstacle_when_it_covers_half_of_it_not_its_corner(cover):
+    """A 1 m tall bush over x, y in [0.2, 2.6) m, seen from above with beams through its
+    leaves to the ground, on 0.8 m cells (cell k spans [0.8 k, 0.8 k + 0.8)): the cells it
+    covers wholly or 9 of 16 sub-cells of are fatal; the cells whose edge column (4 of 16) or
+    corner (1 of 16) it covers are not, by the cover of their 0.2 m sub-cells. With
+    cover_cell_m null (the cell's highest point, the oracle of the change) they read fatal."""
+    from gtgen.mapping.layers import layers
+
+    m = MappingConfig(cover_cell_m=cover)
+    rng = np.random.default_rng(38)
+    g = rng.uniform(-8, 8, (60000, 2))
+    bush = (g[:, 0] >= 0.2) & (g[:, 0] < 2.6) & (g[:, 1] >= 0.2) & (g[:, 1] < 2.6)
+    z = rng.normal(0, 0.01, len(g)) + np.where(bush, 1.0, 0.0)
+    under = np.column_stack([rng.uniform(0.2, 2.6, (2000, 2)), rng.normal(0, 0.01, 2000)])  # beams through the leaves
+    pts = np.vstack([np.column_stack([g, z]), under])
+    cells = RollingCells(20, 0.8, m)
+    cells.add(pts, np.full(len(pts), 5.0, np.float32), np.zeros(2), 0)
+    lay = layers(cells.crop(np.zeros(2), 20, 0), m, 0.8, np.zeros(2))
+
+    def risk(kx: int, ky: int) -> float:  # cell (kx, ky) of odom; the crop's lowest cell is -10
+        return lay.risk[kx + 10, ky + 10]
+
+    assert risk(1, 1) >= 0.5 and risk(0, 0) >= 0.5  # wholly; [0.2, 0.8)^2 of [0, 0.8)^2
+    assert risk(-3, -3) < 0.5 and risk(5, 1) < 0.5  # the ground away from it
+    if cover is None:
+        assert risk(3, 1) >= 0.5 and risk(3, 3) >= 0.5  # the highest point: any corner of a bush
+    else:
+        assert risk(3, 1) < 0.5 and risk(3, 3) < 0.5  # its edge column, its corner

@@ -12,6 +12,9 @@ A cell keeps: its lowest point ``zmin``; the sum and count of its points within
 out, a lower surface seen later, through a gap in the leaves, restarts the band); the
 highest point at most ``overhang_m`` above ``zmin`` (the top: obstacles and vegetation,
 not the branches the vehicle passes under); its closest view range and its latest stamp.
+A cell coarser than ``cover_cell_m`` also keeps that top per sub-cell of about that edge
+(``subtop``, -inf where unseen), so its layers can tell an obstacle that covers the cell
+from one that only crosses its corner.
 """
 
 from __future__ import annotations
@@ -40,7 +43,10 @@ class RollingCells:
 
     def __init__(self, n: int, res: float, cfg: MappingConfig) -> None:
         self.n, self.res, self.cfg = n, res, cfg
+        self.sub = sub_cells(res, cfg.cover_cell_m)
         m = n * n
+        # the top per sub-cell (sub x sub of them, row-major along x then y) of a coarse cell
+        self.subtop = np.full((m, self.sub * self.sub), -np.inf, np.float32) if self.sub > 1 else None
         self.key = np.full(m, NO_CELL, np.int64)
         self.zmin = np.full(m, np.inf, np.float64)
         self.gsum = np.zeros(m, np.float64)
@@ -71,6 +77,7 @@ class RollingCells:
         slot = self.slots(kx, ky)
         order = np.argsort(slot, kind="stable")
         slot, z, rng, key = slot[order], pts[order, 2].astype(np.float64), rng[order], pack(kx, ky)[order]
+        sub = None if self.subtop is None else self._sub_index(pts[order, :2], kx[order], ky[order])
         start = np.flatnonzero(np.r_[True, slot[1:] != slot[:-1]])
         s = slot[start]
         # a slot holding another cell, or silent for memory_s, starts afresh
@@ -85,6 +92,8 @@ class RollingCells:
         self.gsum[s[restart]] = 0.0
         self.gn[s[restart]] = 0
         self.top[s[restart]] = -np.inf
+        if self.subtop is not None:
+            self.subtop[s[restart]] = -np.inf
         zmin = np.where(restart, low, np.minimum(old, low))
         self.zmin[s] = zmin
         per_point = np.repeat(zmin, np.diff(np.r_[start, len(z)]))
@@ -93,11 +102,22 @@ class RollingCells:
         self.gn[s] += np.add.reduceat(ground.astype(np.int64), start)
         under = np.where(z <= per_point + self.cfg.overhang_m, z, -np.inf)
         self.top[s] = np.maximum(self.top[s], np.maximum.reduceat(under, start))
+        if self.subtop is not None:
+            np.maximum.at(self.subtop, (slot, sub), under.astype(np.float32))
         self.rmin[s] = np.minimum(self.rmin[s], np.minimum.reduceat(rng, start))
         self.t_last[s] = t_ns
 
+    def _sub_index(self, xy: NDArray, kx: NDArray[np.int64], ky: NDArray[np.int64]) -> NDArray[np.intp]:
+        """Return the sub-cell (ix * sub + iy) of points ``xy`` (N, 2) in their cells (kx, ky)."""
+        f = self.sub / self.res
+        ix = np.clip(np.floor(xy[:, 0] * f - kx * self.sub), 0, self.sub - 1).astype(np.intp)
+        iy = np.clip(np.floor(xy[:, 1] * f - ky * self.sub), 0, self.sub - 1).astype(np.intp)
+        return ix * self.sub + iy
+
     def _reset(self, s: NDArray[np.int64], key: NDArray[np.int64]) -> None:
         self.key[s] = key
+        if self.subtop is not None:
+            self.subtop[s] = -np.inf
         self.zmin[s] = np.inf
         self.gsum[s] = 0.0
         self.gn[s] = 0
@@ -107,7 +127,8 @@ class RollingCells:
     def crop(self, center_xy: NDArray, size: int, t_ns: int) -> dict[str, NDArray]:
         """Return the statistics of the ``size`` x ``size`` cells centred on ``center_xy`` as
         (size, size) arrays, axis 0 along x from the lowest x, and the window's lowest cell
-        indices: ``ground`` (NaN below ``min_points``), ``top``, ``n``, ``range``, ``age_s``."""
+        indices: ``ground`` (NaN below ``min_points``), ``top``, ``n``, ``range``, ``age_s``, and
+        of a cell coarser than ``cover_cell_m`` ``subtop`` (size, size, sub * sub), -inf unseen."""
         if size > self.n:
             raise ValueError(f"a crop of {size} cells exceeds the ring of {self.n}")
         c = np.floor(np.asarray(center_xy, np.float64)[:2] / self.res).astype(np.int64)
@@ -122,5 +143,14 @@ class RollingCells:
         n = np.where(ok, self.gn[slot], 0)
         ground = np.where(ok, self.gsum[slot] / np.maximum(n, 1), np.nan)
         top = np.where(ok, np.maximum(self.top[slot], ground), np.nan)
-        return {"ground": ground, "top": top, "n": n, "range": np.where(ok, self.rmin[slot], np.inf),
-                "age_s": np.where(ok, age, np.inf), "origin": np.array([x0, y0], np.int64)}
+        out = {"ground": ground, "top": top, "n": n, "range": np.where(ok, self.rmin[slot], np.inf),
+               "age_s": np.where(ok, age, np.inf), "origin": np.array([x0, y0], np.int64)}
+        if self.subtop is not None:
+            out["subtop"] = np.where(ok[..., None], self.subtop[slot], -np.inf)
+        return out
+
+
+def sub_cells(res: float, cover_cell_m: float | None) -> int:
+    """Return the sub-cells a side (1: none) of a cell of edge ``res`` judged by its cover at
+    sub-cells of about ``cover_cell_m`` (None: by its highest point)."""
+    return 1 if cover_cell_m is None else max(1, int(round(res / cover_cell_m)))

@@ -10,7 +10,9 @@ side of a step only: where a wheel meets the edge or drops off it), its slope an
 roughness (std about the local plane). What stands on it is an obstacle by its own height:
 the cell's ground above the local ground (a rock, against ``max_step_m``), and the cell's top
 above its ground, less what the local slope spans across the cell (a bush, a trunk, against
-the ground clearance). So a rock's cells are fatal and the ground around it is not: the old
+the ground clearance; of a cell coarser than ``cover_cell_m``, the top that half of its seen
+sub-cells reach, so a 0.8 m cell whose corner a crown or a rock's side crosses is judged
+by what covers it, as the cell's centre would be). So a rock's cells are fatal and the ground around it is not: the old
 rule measured each cell's step against its neighbours both ways, and the ring of cells
 below a rock's edge read fatal too (``tests/test_mapping.py`` keeps it as an oracle).
 Risk is half the largest ratio, clipped to [0, 1]: 0.5, the fatal threshold of
@@ -146,16 +148,39 @@ def geometry_naive(ground: NDArray, res: float, k: int) -> dict[str, NDArray]:
     return out
 
 
+def half_cover_top(subtop: NDArray) -> NDArray:
+    """Return, per cell, the top that at least half of its seen sub-cells reach: the
+    ceil(n / 2)-th highest of the n finite values along the last axis (-inf: unseen; NaN
+    where none is seen). Of one seen sub-cell, its top; of 16, the 8th highest."""
+    srt = np.sort(subtop, axis=-1)
+    s = subtop.shape[-1]
+    seen = np.isfinite(subtop).sum(axis=-1)
+    at = np.take_along_axis(srt, np.clip(s - (seen + 1) // 2, 0, s - 1)[..., None], axis=-1)[..., 0]
+    return np.where(seen > 0, at, np.nan)
+
+
+def half_cover_top_naive(subtop: NDArray) -> NDArray:
+    """``half_cover_top`` cell by cell (the test oracle)."""
+    out = np.full(subtop.shape[:-1], np.nan)
+    for idx in np.ndindex(*subtop.shape[:-1]):
+        v = sorted((float(x) for x in subtop[idx] if np.isfinite(x)), reverse=True)
+        if v:
+            out[idx] = v[(len(v) + 1) // 2 - 1]
+    return out
+
+
 def layers(cells: dict[str, NDArray], cfg: MappingConfig, res: float, center: NDArray) -> MapLayers:
     """Return the layers of a crop of cell statistics (``RollingCells.crop``)."""
     ground, top = cells["ground"], cells["top"]
+    # a coarse cell stands as high as what covers half of it (RollingCells keeps its sub-cells' tops)
+    cover = np.fmax(half_cover_top(cells["subtop"]), ground) if "subtop" in cells else top
     base = local_ground(ground, window_cells(cfg.ground_window_m, res))
     geo = geometry(base, res, neighbourhood_cells(cfg, res))
     # what stands on the local ground: the cell's own ground above it (a rock), and the cell's
     # top above its ground, less what the local slope spans across the cell (a bush, a trunk)
     valid = np.isfinite(ground)
     standing = np.where(valid, ground - base, np.nan)
-    height = np.where(valid, np.maximum(top - ground - geo["rise"], 0.0), np.nan)
+    height = np.where(valid, np.maximum(cover - ground - geo["rise"], 0.0), np.nan)
     ratio = np.fmax.reduce([geo["step"] / cfg.max_step_m, geo["slope"] / cfg.max_slope_deg,
                             geo["roughness"] / cfg.max_roughness_m, standing / cfg.max_step_m, height / cfg.clearance_m])
     risk = np.clip(0.5 * ratio, 0.0, 1.0)
