@@ -1,6 +1,6 @@
 """The documentation's reference pages, made from the code at every build so they cannot
 drift: every command's ``--help`` (from the typer app in ``gtgen/cli/``) and every config
-key with its type, unit, default and range (from the pydantic models in ``gtgen/config.py``
+key with its type, unit, default and range (from the pydantic models in ``gtgen/config/``
 and the presets in ``gtgen/train/presets.py``).
 
 An MkDocs hook (``mkdocs.yml``: ``hooks``): ``on_files`` adds ``reference/cli.md`` and
@@ -154,7 +154,7 @@ def config_reference() -> str:
     out = [
         "# Config reference",
         "",
-        "Every key a `--config FILE` may set, generated from the settings models in `gtgen/config.py` at each "
+        "Every key a `--config FILE` may set, generated from the settings models in `gtgen/config/` at each "
         "build of this site. A config file is a partial YAML over these defaults (`configs/default.yaml` lists "
         "them with the same descriptions); a misspelt key is refused with the nearest valid one, and so is a "
         "value outside its range, `inf` or `nan`. Write a key `a.b.c` as nested YAML:",
