@@ -80,3 +80,17 @@ def test_one_topic_in_two_roles_is_a_one_line_error(over, needle):
     with pytest.raises(ConfigError) as exc:
         build_config(over)
     assert needle in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_a_cover_cell_that_would_split_a_cell_into_too_many_sub_cells_is_refused():
+    """mapping.cover_cell_m splits coarse cells into sub-cells whose tops every cell of the
+    rolling map keeps: 0.01 m would make 80 x 80 of them a 0.8 m cell (1.6 GB for the short
+    map); a one-line error names the value, the grid and the smallest allowed."""
+    from gtgen.config import build_config
+
+    with pytest.raises(ConfigError) as exc:
+        build_config({"mapping": {"cover_cell_m": 0.01}})
+    msg = str(exc.value)
+    assert "mapping.cover_cell_m = 0.01" in msg and "short grid's 0.8 m cells into 80 x 80" in msg and "\n" not in msg
+    assert build_config({"mapping": {"cover_cell_m": 0.1}}).mapping.sub_cells(0.8) == 8
+    assert build_config({"mapping": {"cover_cell_m": None}}).mapping.sub_cells(0.8) == 1

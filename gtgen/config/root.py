@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pydantic import Field, model_validator
 
-from gtgen.config.base import LIDAR_REFERENCE, GridsConfig, TopicsConfig, _Model
+from gtgen.config.base import LIDAR_REFERENCE, RANGES, GridsConfig, TopicsConfig, _Model
 from gtgen.config.stages import DemConfig, ExtractConfig, FuseConfig, MappingConfig, ReportConfig, ShardsConfig, TrainConfig
 from gtgen.config.synth import SynthConfig
+
+MAX_SUB_CELLS = 8  # sub-cells a side of a map cell judged by its cover (mapping.cover_cell_m): 64 floats a cell at most
 
 
 class GtgenConfig(_Model):
@@ -31,6 +33,14 @@ class GtgenConfig(_Model):
                              f"{[*self.topics.cameras, LIDAR_REFERENCE]} (a camera of topics.cameras, or the lidar)")
         if ref == LIDAR_REFERENCE and not self.topics.lidar:
             raise ValueError("extract.reference = 'lidar', but topics.lidar lists no lidar topic")
+        # a cell's sub-cell tops take sub^2 floats a cell of the rolling map: judged on the coarsest grid
+        r = max(RANGES, key=lambda r: self.mapping.sub_cells(self.grids.get(r).resolution_m))
+        res = self.grids.get(r).resolution_m
+        sub = self.mapping.sub_cells(res)
+        if sub > MAX_SUB_CELLS:
+            raise ValueError(f"mapping.cover_cell_m = {self.mapping.cover_cell_m} splits the {r} grid's {res} m cells into {sub} x {sub} "
+                             f"sub-cells; expected at most {MAX_SUB_CELLS} x {MAX_SUB_CELLS} (cover_cell_m >= {res / (MAX_SUB_CELLS + 0.5):.3g} m), "
+                             "or null")
         return self
 
     @property

@@ -202,6 +202,11 @@ class MappingConfig(_Model):
     cover_cell_m: float | None = Field(0.2, gt=0, description="a cell coarser than this is as high as what covers half of it: its points' tops are kept per sub-cell of about this edge, and its height is the top that half of its seen sub-cells reach, so a 0.8 m cell whose corner a crown or a rock's side crosses is not an obstacle, one the obstacle covers is [m]; null: the cell's highest point")
     voxel_m: float = Field(0.4, gt=0, description="voxel edge of the voxel map made from lidar (topics.voxel_map: null) [m]; it holds the voxels seen in the last memory_s within the short grid")
 
+    def sub_cells(self, res: float) -> int:
+        """Return the sub-cells a side (1: none) of a cell of edge ``res`` [m] judged by its
+        cover at sub-cells of about ``cover_cell_m`` (None: by its highest point)."""
+        return 1 if self.cover_cell_m is None else max(1, int(round(res / self.cover_cell_m)))
+
     @model_validator(mode="after")
     def _body_box(self) -> MappingConfig:
         for k in ("body_x_m", "body_y_m", "body_z_m"):

@@ -43,7 +43,7 @@ class RollingCells:
 
     def __init__(self, n: int, res: float, cfg: MappingConfig) -> None:
         self.n, self.res, self.cfg = n, res, cfg
-        self.sub = sub_cells(res, cfg.cover_cell_m)
+        self.sub = cfg.sub_cells(res)
         m = n * n
         # the top per sub-cell (sub x sub of them, row-major along x then y) of a coarse cell
         self.subtop = np.full((m, self.sub * self.sub), -np.inf, np.float32) if self.sub > 1 else None
@@ -149,8 +149,3 @@ class RollingCells:
             out["subtop"] = np.where(ok[..., None], self.subtop[slot], -np.inf)
         return out
 
-
-def sub_cells(res: float, cover_cell_m: float | None) -> int:
-    """Return the sub-cells a side (1: none) of a cell of edge ``res`` judged by its cover at
-    sub-cells of about ``cover_cell_m`` (None: by its highest point)."""
-    return 1 if cover_cell_m is None else max(1, int(round(res / cover_cell_m)))
