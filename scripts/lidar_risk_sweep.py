@@ -7,7 +7,9 @@ against the synthetic world's truth (the measure of ``gtgen report``: ``LabelErr
 Each seed's drive is made once (``WORKDIR/seed_S/drive``, reused on later runs); extract
 (maps from lidar: ``configs/lidar_maps.yaml``, then ``--config`` if given), fuse and
 ``dem-align --no-dem`` run afresh each time, so the table is that of the gtgen on
-PYTHONPATH (run it against an older checkout for a "before" row). ``--clean`` removes each
+PYTHONPATH (run it against an older checkout for a "before" row; ``--config`` with
+``mapping: {cover_cell_m: null}`` gives the rule before the short cells were judged by
+their cover, to the last digit). ``--clean`` removes each
 seed's stores afterwards (the drives stay, for the next run).
 """
 
