@@ -60,8 +60,12 @@ def main() -> None:
     for k in range(ds0.n_samples):
         xy = rock_in_target(k)
         d = np.hypot(*xy.T)
-        for i in np.flatnonzero((d > 10) & (d < 40)):
-            seen = all(_judged(ds, k, r, _cell(xy[i], cfg.grids.get(r))) for _, ds in named for r in RANGES)
+        near = np.flatnonzero((d > 10) & (d < 40))
+        if not len(near):
+            continue
+        judged = [_judged(ds, k, r) for _, ds in named for r in RANGES]  # each sample's grids read once
+        for i in near:
+            seen = all(j[_cell(xy[i], cfg.grids.get(r))] for j, r in zip(judged, RANGES * len(named)))
             if seen and (best is None or ob.rock_height[i] > best[2]):
                 best = (k, i, float(ob.rock_height[i]))
     if best is None:
@@ -83,7 +87,7 @@ def main() -> None:
         _, trisk, _ = truth.labels(T, X, Y, int(t[k]))
         tob = (trisk >= fr) | (truth.standing(T, X, Y, int(t[k])) >= cfg.mapping.clearance_m)
         ext = (cc[jj[0]] - g.resolution_m / 2, cc[jj[-1]] + g.resolution_m / 2, cc[ii[0]] - g.resolution_m / 2, cc[ii[-1]] + g.resolution_m / 2)
-        rows = [("truth at cell centres", tob.astype(float), None)]
+        rows = [("truth at cell centres", tob.astype(float))]
         for name, ds in named:
             rk = ds.grid("labels", r, "risk")[k][np.ix_(ii, jj)]
             obs = codes.observed(ds.grid("labels", r, "region")[k][np.ix_(ii, jj)]) & np.isfinite(rk)
@@ -91,8 +95,8 @@ def main() -> None:
             q = tob[obs]
             p = fatal[obs]
             rows.append((f"{name}: {int((p & q).sum())} right, {int((p & ~q).sum())} false, {int((~p & q).sum())} missed",
-                         np.where(fatal, 1.0, np.where(obs, 0.35, 0.0)), None))
-        for row, (title, img, _) in enumerate(rows):
+                         np.where(fatal, 1.0, np.where(obs, 0.35, 0.0))))
+        for row, (title, img) in enumerate(rows):
             ax = axes[row, col]
             ax.imshow(img, origin="lower", extent=ext, cmap="Reds" if row else "Greys", vmin=0, vmax=1, interpolation="nearest")
             ax.contour(FY, FX, fob.astype(float), levels=[0.5], colors="tab:blue", linewidths=1.0)
@@ -105,11 +109,11 @@ def main() -> None:
     print(f"{a.out}: sample {k}, rock at ({c[0]:.1f}, {c[1]:.1f}) m")
 
 
-def _judged(ds, k: int, r: str, ij: tuple[int, int]) -> bool:
-    """Return whether sample ``k`` of ``ds`` has an observed cell with risk at ``ij`` of range ``r``."""
+def _judged(ds, k: int, r: str) -> np.ndarray:
+    """Return the cells of range ``r`` of sample ``k`` of ``ds`` observed and with a risk."""
     from gtgen import codes
 
-    return bool(codes.observed(ds.grid("labels", r, "region")[k][ij]) and np.isfinite(ds.grid("labels", r, "risk")[k][ij]))
+    return codes.observed(ds.grid("labels", r, "region")[k]) & np.isfinite(ds.grid("labels", r, "risk")[k])
 
 
 def _cell(xy: np.ndarray, g) -> tuple[int, int]:

@@ -202,16 +202,18 @@ class DrivePlacement:
         as its horizontal offsets (E, N) [m]: from the drive's GNSS fit carried by odometry, and
         from the window's GNSS fixes (their median offset; NaN with fewer than
         ``dem.min_window_fixes``)."""
-        r = self._fix_residuals(T, T_odom_target, t_ns)
+        r = self._fix_residuals(T, T_odom_target, self._window(t_ns))
         g = np.median(r, axis=0) if r is not None else np.full(2, np.nan)
         return T[:2, 3] - (self.T_fit @ T_odom_target)[:2, 3], g
 
-    def _fix_residuals(self, T: NDArray, T_odom_target: NDArray, t_ns: int) -> NDArray | None:
-        """Return the window's GNSS fixes at placement ``T`` less where GNSS put them, (n, 2)
-        (E, N) [m]; None with fewer than ``dem.min_window_fixes``."""
-        dc = self.cfg.dem
-        win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
-        if win.sum() < dc.min_window_fixes:
+    def _window(self, t_ns: int) -> NDArray[np.bool_]:
+        """Return which GNSS fixes lie within ``dem.gnss_window_s`` of ``t_ns``."""
+        return np.abs(self.gnss_t - t_ns) <= int(self.cfg.dem.gnss_window_s * 1e9)
+
+    def _fix_residuals(self, T: NDArray, T_odom_target: NDArray, win: NDArray[np.bool_]) -> NDArray | None:
+        """Return the fixes ``win`` (``_window``) at placement ``T`` less where GNSS put them,
+        (n, 2) (E, N) [m]; None with fewer than ``dem.min_window_fixes``."""
+        if win.sum() < self.cfg.dem.min_window_fixes:
             return None
         T_crs_odom = T @ invert(T_odom_target)
         xy = self.gnss_xy[win]
@@ -240,8 +242,8 @@ class DrivePlacement:
         C = np.eye(4) if res is None else res.T  # None: placed by odometry alone
         g = ground & np.isfinite(aligned)
         dev = np.abs(elev[g] - aligned[g])
-        win = np.abs(self.gnss_t - t_ns) <= int(dc.gnss_window_s * 1e9)
-        r = self._fix_residuals(T, T_odom_target, t_ns)
+        win = self._window(t_ns)
+        r = self._fix_residuals(T, T_odom_target, win)
         offset = float(np.median(np.linalg.norm(r, axis=1))) if r is not None else np.nan
         return {"correction_xy_m": float(np.hypot(C[0, 3], C[1, 3])), "correction_z_m": float(abs(C[2, 3])),
                 "correction_yaw_deg": float(abs(np.degrees(np.arctan2(C[1, 0], C[0, 0])))),

@@ -44,6 +44,12 @@ def micro_view(raw: NDArray, n_dst: int) -> NDArray:
     return raw[np.ix_(ix, ix)]
 
 
+def _unless_identity(ix: NDArray, n: int) -> NDArray | None:
+    """Return the cell indices ``ix`` into a grid of ``n`` cells a side, or None when they
+    take every cell in order."""
+    return None if len(ix) == n and (ix == np.arange(n)).all() else ix
+
+
 def decode_at(jpeg: bytes, width: int, height: int) -> tuple[NDArray[np.uint8], tuple[int, int]]:
     """Return a JPEG file decoded and resized to width x height (H, W, 3) RGB, and the
     source extent (width, height) [px of the stored image] the result spans, for
@@ -162,7 +168,8 @@ class ShardDataset(Dataset):
         self.max_points = max_points or (store.scan_dims[0] if self.scans else self.data_cfg.shards.max_voxel_points)
         self._r: dict | None = None
         self._offsets = store.voxel_offsets()
-        self._ix = {r: nearest_index(store.size(r), getattr(tc, f"{r}_size")) for r in ("micro", "short")}
+        # the cells of each stored grid the model's grid takes (None: the stored grid itself)
+        self._ix = {r: _unless_identity(nearest_index(store.size(r), getattr(tc, f"{r}_size")), store.size(r)) for r in ("micro", "short")}
         bev_m, self._bev_size = bev_grid(tc, self.data_cfg.grids)
         # smoothing window of each range's prior, in that range's model cells (odd)
         grids = self.data_cfg.grids
@@ -225,9 +232,7 @@ class ShardDataset(Dataset):
 
     def _grid(self, arr: NDArray, rng: str) -> NDArray:
         ix = self._ix[rng]
-        if len(ix) == arr.shape[0] and (ix == np.arange(len(ix))).all():  # the model's grid is the stored one
-            return arr
-        return arr[np.ix_(ix, ix)]
+        return arr if ix is None else arr[np.ix_(ix, ix)]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         g = self._readers()
