@@ -1,10 +1,9 @@
 """Training and inference figures of one run, on this machine's device (CPU here):
 steps/s of the tiny preset (CLI, 40 steps incl. start-up) and of the paper preset (its
-network at batch 6), the samples per second ShardDataset delivers through a DataLoader
-with 0 and 2 workers (it must keep a GPU fed: >= 50/s), the peak memory of a paper-preset
+network at batch 6), the peak memory of a paper-preset
 step at batch 6 with the lifted tensor written out (the naive pooling, the oracle) and with
 the chunked BEV pooling, inference milliseconds per sample of both presets, and the prior
-fill against its full-resolution oracle.
+fill against its full-resolution oracle. The loader's samples per second: ``bench/loader.py``.
 
 A whole paper-preset step at batch 6 does not fit in this machine's 23 GB in float32 on the
 CPU (killed by the kernel at 21.5 GB RSS with the chunked pooling), so the whole step runs at
@@ -20,7 +19,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _common import OUT, drive, header, run_measured
+from loader import dataset_of_default_drive
+
+from _common import OUT, header, run_measured
 
 # one paper-preset training step on random inputs of the paper's sizes: seconds of the
 # second step and the process's peak RSS; argv: batch, pooling (chunked | naive)
@@ -109,29 +110,6 @@ with torch.no_grad():
 print(statistics.median(ts))
 """
 
-LOADER = """
-import sys, time, torch
-from pathlib import Path
-from torch.utils.data import DataLoader
-from gtgen.config import load_config
-from gtgen.train.trainer import preset_overrides, _collate
-from gtgen.train.data import ShardDataset
-cfg = load_config(None, preset_overrides(sys.argv[3]))
-ds = ShardDataset(Path(sys.argv[1]), cfg.train, split="train")
-workers = int(sys.argv[2])
-dl = DataLoader(ds, batch_size=cfg.train.batch_size, shuffle=True, num_workers=workers, collate_fn=_collate,
-                generator=torch.Generator().manual_seed(0), persistent_workers=workers > 0)
-it = iter(dl); next(it)  # workers started, first batch out
-n, t = 0, time.perf_counter()
-while n < 240:
-    try:
-        b = next(it)
-    except StopIteration:
-        it = iter(dl); continue
-    n += len(b["index"])
-print(n / (time.perf_counter() - t))
-"""
-
 FILL = """
 import sys, time, numpy as np
 from pathlib import Path
@@ -161,16 +139,8 @@ def py(code: str, *args: str) -> list[str]:
 
 if __name__ == "__main__":
     header("bench/train.py")
-    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else None  # an existing one instead of a new drive
-    if dataset is None:
-        d = drive(120)
-        ws = OUT / "ws_pipeline"
-        dataset = ws / "dataset.zarr"
-        if not dataset.is_dir():
-            ws.mkdir(parents=True, exist_ok=True)
-            run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
-            run_measured(["fuse", str(ws / "drive.zarr")])
-            run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
+    # an existing dataset instead of the default drive's
+    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else dataset_of_default_drive()
     run = OUT / "run_tiny"
     shutil.rmtree(run, ignore_errors=True)
     steps = 40
@@ -193,9 +163,5 @@ if __name__ == "__main__":
     for preset in ("tiny", "paper"):
         ms = 1000 * float(py(INFER, preset)[0])
         print(f"{preset} preset: inference {ms:.0f} ms per sample on CPU (batch 1, no gradient)" + (" (paper: 100 ms on a GPU)" if preset == "paper" else ""))
-    for preset in ("tiny", "paper"):
-        rates = [float(py(LOADER, str(dataset), str(w), preset)[-1]) for w in (0, 2)]
-        print(f"ShardDataset ({preset} preset) through a DataLoader: {rates[0]:.1f} / {rates[1]:.1f} samples/s with 0 / 2 workers "
-              f"({rates[1] / rates[0]:.2f}x; goal >= 50)")
     ratio, ms, n = py(FILL, str(dataset))
     print(f"prior fill of the stored {n} x {n} min-z grids: the pyramid {float(ratio):.1f}x faster than every scale at full resolution ({float(ms):.1f} ms per grid)")

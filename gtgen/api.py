@@ -80,15 +80,16 @@ class Dataset:
         ``sample`` (time), ``x_m`` and ``y_m`` (cell centres of the target frame [m])."""
         return self.store.xarray(group)
 
-    def torch(self, split: str | None = "train", preset: str = "tiny", config: dict | None = None) -> Any:
+    def torch(self, split: str | None = "train", preset: str = "tiny", config: dict | None = None, baselines: bool = True) -> Any:
         """Return a PyTorch ``Dataset`` of ``split`` (None: every sample) at the model sizes of
-        ``preset`` (and a config layer over it): see ``gtgen.train.data.ShardDataset``."""
+        ``preset`` (and a config layer over it), with the evaluation's baselines (X-Racer at t,
+        the raw min-z grid) unless ``baselines`` is off: see ``gtgen.train.data.ShardDataset``."""
         from gtgen.config import load_config
         from gtgen.train.data import ShardDataset
         from gtgen.train.presets import preset_overrides
 
         cfg = load_config(None, preset_overrides(preset), *([config] if config else []))
-        return ShardDataset(self.path, cfg.train, split=split)
+        return ShardDataset(self.path, cfg.train, split=split, baselines=baselines)
 
     def __len__(self) -> int:
         return self.n_samples

@@ -73,6 +73,30 @@ def test_overfitting_a_fixed_batch(dataset):
     assert losses[-1] < 0.1 * losses[0]
 
 
+def test_the_training_read_is_the_full_read_without_the_baselines(dataset):
+    from gtgen.train.data import ShardDataset
+    from gtgen.train.evaluation import run_eval
+    from gtgen.train.loss import total_loss
+    from gtgen.train.trainer import _collate, build_model, seed_everything
+
+    cfg = load_config(None, SMALL_TRAIN)
+    full, lean = ShardDataset(dataset, cfg.train), ShardDataset(dataset, cfg.train, baselines=False)
+    baseline_keys = {f"{r}/{k}" for r in ("micro", "short") for k in ("xr_elevation", "xr_risk", "raw_elevation")}
+    for i in (0, len(full) - 1):
+        a, b = full[i], lean[i]
+        assert set(a) - set(b) == baseline_keys and set(b) <= set(a)
+        for k, v in b.items():
+            assert v.dtype == a[k].dtype and torch.equal(torch.nan_to_num(v), torch.nan_to_num(a[k])), k
+        assert a["micro/region"].dtype == torch.uint8 and int(a["micro/region"].max()) <= 3
+    seed_everything(0)
+    model = build_model(cfg.train, full.data_cfg)
+    batch_a, batch_b = _collate([full[0], full[1]]), _collate([lean[0], lean[1]])
+    assert total_loss(model(batch_a), batch_a, cfg.train)[0] == total_loss(model(batch_b), batch_b, cfg.train)[0]
+    # the baseline rows need the baselines' grids: a clear error, not a KeyError mid-run
+    with pytest.raises(ValueError, match="baselines=True"):
+        run_eval(model.eval(), lean, cfg.train, torch.device("cpu"), "32", baselines=True)
+
+
 def test_elevation_mae_by_hand_with_empty_regions():
     m = ElevationMAE()
     pred = np.array([[1.0, 2.0], [np.nan, 4.0]])

@@ -110,7 +110,9 @@ class ShardDataset(Dataset):
     n_b the BEV grid's cells: ``model.bev_grid``; labels resampled by nearest cell centre;
     elevations relative to the base height at t). Only what the model takes is read: no
     images without ``tc.cameras``, no points without ``tc.points``, no raw / prior grids
-    without ``tc.raw_elevation``, and the ``<r>/`` keys of the ranges it predicts only:
+    without ``tc.raw_elevation``, the ``<r>/`` keys of the ranges it predicts only, and
+    the evaluation's baselines (``<r>/xr_*``, ``<r>/raw_elevation``) only with
+    ``baselines`` (training reads without them: the loss never does):
 
     ===========================  ======================  ==========================================
     key                          shape, dtype            meaning
@@ -136,13 +138,15 @@ class ShardDataset(Dataset):
                                                          grid / the micro grid (micro predicted)
     <r>/elevation                (n_r, n_r), float32     label / elevation_clip_m (NaN: no label)
     <r>/risk                     (n_r, n_r), float32     label risk 0..1 (NaN: none)
-    <r>/region                   (n_r, n_r), int64       gtgen.codes: 0 none, 1 obs PC, 2 obs F, 3 unobs
-    <r>/xr_elevation, xr_risk    (n_r, n_r), float32     X-Racer's map at t [m] / 0..1 (NaN: none)
-    <r>/raw_elevation            (n_r, n_r), float32     min z [m] (NaN where no point)
+    <r>/region                   (n_r, n_r), uint8       gtgen.codes: 0 none, 1 obs PC, 2 obs F, 3 unobs
+    <r>/xr_elevation, xr_risk    (n_r, n_r), float32     X-Racer's map at t [m] / 0..1 (NaN: none);
+                                                         with ``baselines``
+    <r>/raw_elevation            (n_r, n_r), float32     min z [m] (NaN where no point); with ``baselines``
     ===========================  ======================  ==========================================
     """
 
-    def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int | None = None) -> None:
+    def __init__(self, path: Path, tc: TrainConfig, split: str | None = None, max_points: int | None = None,
+                 baselines: bool = True) -> None:
         store = DatasetStore(path)
         if store.n_samples == 0:
             raise TrainError(f"dataset '{path}' has no samples; nothing to train or evaluate on")
@@ -150,6 +154,7 @@ class ShardDataset(Dataset):
         self.tc = tc
         self.data_cfg = store.config
         self.store = store
+        self.baselines = baselines
         self.scans = tc.points and tc.geometry == "scans"
         if self.scans and not store.has_scans:
             raise TrainError(f"dataset '{path}' {NO_SCANS}")
@@ -213,9 +218,9 @@ class ShardDataset(Dataset):
             self._r["points"] = st.voxel_points()
             if self.scans:
                 self._r["scan_points"], self._r["scan_counts"] = st.scan_input()
-            self._r.update({(kind, r, a): st.grid(kind, r, a) for r in ("micro", "short") for kind, a in
-                            (("labels", "elevation_m"), ("labels", "risk"), ("labels", "region"), ("xracer", "elevation_m"),
-                             ("xracer", "risk"))})
+            grids = [("labels", "elevation_m"), ("labels", "risk"), ("labels", "region")]
+            grids += [("xracer", "elevation_m"), ("xracer", "risk")] if self.baselines else []
+            self._r.update({(kind, r, a): st.grid(kind, r, a) for r in self.tc.predicted_ranges for kind, a in grids})
         return self._r
 
     def _images(self, files: list[bytes], K: NDArray) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
@@ -259,29 +264,29 @@ class ShardDataset(Dataset):
             el = self._grid(g[("labels", r, "elevation_m")][k], r)
             out[f"{r}/elevation"] = torch.from_numpy((np.clip(el, -tc.elevation_clip_m, tc.elevation_clip_m) / tc.elevation_clip_m).astype(np.float32))
             out[f"{r}/risk"] = torch.from_numpy(self._grid(g[("labels", r, "risk")][k], r).astype(np.float32))
-            out[f"{r}/region"] = torch.from_numpy(self._grid(g[("labels", r, "region")][k], r).astype(np.int64))
-            out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[("xracer", r, "elevation_m")][k], r).astype(np.float32))
-            out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
+            out[f"{r}/region"] = torch.from_numpy(np.ascontiguousarray(self._grid(g[("labels", r, "region")][k], r), np.uint8))
+            if self.baselines:
+                out[f"{r}/xr_elevation"] = torch.from_numpy(self._grid(g[("xracer", r, "elevation_m")][k], r).astype(np.float32))
+                out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
         # the raw min-z grid is short range (the evaluation's raw baselines read it too); its
         # micro view is exactly its centre half
-        raw_s = g["raw_elevation_m"][k]
-        n_s = raw_s.shape[0]
-        raw = base = self._grid(raw_s, "short")
-        raw_m = base_m = micro_view(raw_s, tc.micro_size)
+        stored = g["raw_elevation_m"][k]
+        n_s = stored.shape[0]
         if tc.raw_elevation:
-            if scan_pts is not None:  # the N-scan input replaces the voxel map in the network's inputs (not in the baselines)
-                raw_s = raw_min_z(scan_pts, n_s, self.data_cfg.grids.short.length_m / n_s)
-                raw, raw_m = self._grid(raw_s, "short"), micro_view(raw_s, tc.micro_size)
+            # the N-scan input replaces the voxel map in the network's inputs (not in the baselines)
+            raw_s = stored if scan_pts is None else raw_min_z(scan_pts, n_s, self.data_cfg.grids.short.length_m / n_s)
             # the priors the heads correct, each grid at its own resolution, scaled like "raw":
             # (smoothed min z filled everywhere, distance to the nearest cell with points)
-            bev = raw if tc.ranges != "micro" else micro_view(raw_s, self._bev_size)
+            bev = self._grid(raw_s, "short") if tc.ranges != "micro" else micro_view(raw_s, self._bev_size)
             out["raw"] = self._scaled(bev)
             out["prior"] = torch.from_numpy(self._prior(bev, self._prior_win["bev"]))
             if "micro" in ranges:
                 fine = tc.micro_size > n_s // 2  # finer than the points' grid: computed on it, then resampled
-                out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s) if fine else self._prior(raw_m, self._prior_win["micro"]))
-        for r, grid in (("micro", base_m), ("short", base)):
-            if r in ranges:
+                out["prior_micro"] = torch.from_numpy(self._micro_prior(raw_s) if fine else
+                                                      self._prior(micro_view(raw_s, tc.micro_size), self._prior_win["micro"]))
+        if self.baselines:
+            for r in ranges:
+                grid = micro_view(stored, tc.micro_size) if r == "micro" else self._grid(stored, "short")
                 out[f"{r}/raw_elevation"] = torch.from_numpy(grid.astype(np.float32))
         return out
 

@@ -50,7 +50,9 @@ def run_eval(model: MMLite, ds: ShardDataset, tc: TrainConfig, dev: torch.device
               progress: str | None = None) -> dict:
     """Return the paper's tables of ``model`` (in eval mode) on ``ds``, batched on ``dev``, for
     the ranges it predicts (the consistency only with both); with ``baselines`` also the
-    X-Racer and raw rows; plus the loss."""
+    X-Racer and raw rows (read from ``ds``: made with its ``baselines`` on); plus the loss."""
+    if baselines and not ds.baselines:
+        raise ValueError("run_eval: the baseline rows need a ShardDataset made with baselines=True")
     clip = tc.elevation_clip_m
     ranges = tc.predicted_ranges
     rows = EVAL_ROWS if baselines else {"model": EVAL_ROWS["model"]}
@@ -107,7 +109,7 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     state, tc, data_cfg = load_checkpoint(ckpt)
     if preset is not None and preset != state["preset"]:
         raise TrainError(f"checkpoint '{ckpt}' is of preset {state['preset']!r}, not {preset!r}")
-    ds = _eval_dataset(dataset, ckpt, state, tc, split)
+    ds = _eval_dataset(dataset, ckpt, state, tc, split, baselines)
     used = split or "all"
     if len(ds) == 0:
         raise TrainError(f"dataset '{dataset}' has no {split!r} samples (its {ds.store.n_samples} samples are all in other splits); "
@@ -127,14 +129,14 @@ def evaluate(dataset: Path, ckpt: Path, preset: str | None = None, split: str | 
     }
 
 
-def _eval_dataset(dataset: Path, ckpt: Path, state: dict, tc: TrainConfig, split: str | None) -> ShardDataset:
+def _eval_dataset(dataset: Path, ckpt: Path, state: dict, tc: TrainConfig, split: str | None, baselines: bool = True) -> ShardDataset:
     """Return the samples of ``split`` of ``dataset`` as the checkpoint's model reads them;
     raise TrainError when its image branch was trained on other cameras than the dataset's."""
     if tc.cameras:
         err = camera_mismatch(list(state.get("cameras", CAMERAS)), DatasetStore(dataset).cameras, ckpt, dataset)
         if err is not None:
             raise err
-    return ShardDataset(dataset, tc, split=split)
+    return ShardDataset(dataset, tc, split=split, baselines=baselines)
 
 
 def evaluate_seeds(dataset: Path, ckpts: list[Path], split: str | None = "val", device: str | None = None) -> dict:

@@ -142,15 +142,16 @@ def _run_folder(run_dir: Path, ckpt: Path, overwrite: bool) -> Iterator[None]:
 
 def _datasets(dataset: Path, tc: TrainConfig) -> tuple[ShardDataset, ShardDataset | None]:
     """Return the train split (every sample outside test if it is empty) and the val split
-    (None if empty). The test split (drives held out whole) is never trained on."""
-    ds = ShardDataset(dataset, tc, split="train")
+    (None if empty), without the evaluation's baselines (the loss and the validation read
+    neither). The test split (drives held out whole) is never trained on."""
+    ds = ShardDataset(dataset, tc, split="train", baselines=False)
     if len(ds) == 0:
-        ds = ShardDataset(dataset, tc, split=None)
+        ds = ShardDataset(dataset, tc, split=None, baselines=False)
         ds.indices = ds.indices[ds.store.meta("split")[ds.indices] != codes.TEST]
         if len(ds) == 0:
             raise TrainError(f"dataset '{dataset}' has only test samples (drives held out whole); nothing to train on")
         log.warning("the train split is empty; training on every sample outside the test split")
-    val = ShardDataset(dataset, tc, split="val") if tc.val_every else None
+    val = ShardDataset(dataset, tc, split="val", baselines=False) if tc.val_every else None
     if val is not None and tc.val_max_samples is not None and len(val) > tc.val_max_samples:
         val.indices = val.indices[np.linspace(0, len(val) - 1, tc.val_max_samples).round().astype(np.int64)]
     return ds, (val if val is not None and len(val) else None)
