@@ -17,7 +17,8 @@ import sys, time
 from pathlib import Path
 from gtgen.config import load_config
 from gtgen.dem.judge import judge_borders
-from gtgen.dem.tiles import DemMosaic, TileIndex
+from gtgen.dem.index import TileIndex
+from gtgen.dem.tiles import DemMosaic
 index = TileIndex.build(Path(sys.argv[1]))
 mosaic = DemMosaic(index, sys.argv[2])
 t = time.perf_counter()

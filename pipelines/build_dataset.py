@@ -29,7 +29,7 @@ from gtgen.bag.reader import SUFFIXES, hash_bag
 from gtgen.config import GtgenConfig, read_yaml
 from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dataset.merge import merging
-from gtgen.dem.tiles import TileIndex, default_dem_dir
+from gtgen.dem.index import TileIndex, default_dem_dir
 from gtgen.errors import ConfigError, GtgenError, InputNotFoundError
 from gtgen.extract import run_extract
 from gtgen.fuse.run import run_fuse

@@ -12,8 +12,9 @@ import pytest
 from conftest import small_config
 from gtgen import codes
 from gtgen.config import SynthConfig
+from gtgen.dem.index import TileIndex
 from gtgen.dem.place import DrivePlacement, vegetation
-from gtgen.dem.tiles import DemMosaic, TileIndex
+from gtgen.dem.tiles import DemMosaic
 from gtgen.geometry import quat_to_yaw, yaw_transform
 from gtgen.storage.drive import DriveStore
 from gtgen.storage.fused import FusedStore

@@ -11,7 +11,8 @@ import rasterio
 
 from conftest import REALDATA, needs_realdata
 from gtgen.dataset.dem_align import run_dem_align
-from gtgen.dem.tiles import DemMosaic, TileIndex, sample_bilinear
+from gtgen.dem.index import TileIndex
+from gtgen.dem.tiles import DemMosaic, sample_bilinear
 from gtgen.errors import AlignmentError, DemError
 from gtgen.storage.dataset import DatasetStore
 

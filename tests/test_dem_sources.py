@@ -13,7 +13,8 @@ import rasterio
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
 from gtgen.dataset.dem_align import run_dem_align
-from gtgen.dem.tiles import DemMosaic, TileIndex
+from gtgen.dem.index import TileIndex
+from gtgen.dem.tiles import DemMosaic
 from gtgen.errors import DemError
 from gtgen.storage.dataset import DatasetStore
 

@@ -218,7 +218,8 @@ def test_experiments_share_runs_resume_and_retrain_nothing(with_val, tmp_path):
 
 
 def test_experiments_seeds_give_mean_and_spread(with_val, tmp_path):
-    from gtgen.train.experiments import parse_tables, run_experiments
+    from gtgen.train.experiments import run_experiments
+    from gtgen.train.tables import parse_tables
     from gtgen.train.trainer import mean_and_spread
 
     c = tmp_path / "c.yaml"
@@ -291,7 +292,8 @@ def test_results_are_tied_to_their_dataset(dataset, with_val, tmp_path):
     """A run resumed, or an experiments folder reused, on another dataset is one line
     naming both (before, experiments named B with A's numbers); the records themselves."""
     from gtgen.storage.dataset import DatasetStore
-    from gtgen.train.experiments import parse_tables, run_experiments
+    from gtgen.train.experiments import run_experiments
+    from gtgen.train.tables import parse_tables
     from gtgen.train.trainer import evaluate, train
 
     a, b = DatasetStore(dataset).identity, DatasetStore(with_val).identity

@@ -229,7 +229,7 @@ def test_build_checks_the_dem_before_any_work_and_takes_a_single_raster(drives, 
     assert len(p.stderr.strip().splitlines()) == 1
     assert not (out / "drives").exists()  # no drive ran
     tile = sorted((drives / "a" / "dem").glob("*.tif"))
-    from gtgen.dem.tiles import TileIndex
+    from gtgen.dem.index import TileIndex
 
     assert len(TileIndex.build(tile[0]).tiles) == 1  # --dem FILE: one raster is a DEM
     bad = tmp_path / "m.yaml"

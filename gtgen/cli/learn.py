@@ -196,7 +196,8 @@ def experiments_cmd(
     from rich.measure import Measurement
     from rich.table import Table
 
-    from gtgen.train.experiments import cell_texts, parse_tables, run_experiments
+    from gtgen.train.experiments import run_experiments
+    from gtgen.train.tables import cell_texts, parse_tables
 
     con = console()
 

@@ -23,10 +23,10 @@ from gtgen import __version__, codes
 from gtgen.config import GtgenConfig
 from gtgen.dataset.assemble import Context, Kept, build_block
 from gtgen.dem.fit import PlanarFit
+from gtgen.dem.index import default_dem_dir
 from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
 from gtgen.dem.run import Alignment, align_drive, unplaced
-from gtgen.dem.tiles import default_dem_dir
 from gtgen.errors import ConfigError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
-from gtgen.dem.tiles import NO_DEM
+from gtgen.dem.index import NO_DEM
 from gtgen.errors import AlignmentError
 from gtgen.storage.drive import Fixes
 

@@ -22,9 +22,10 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.config import GtgenConfig
 from gtgen.dem.fit import gnss_lonlat
+from gtgen.dem.index import TileIndex
 from gtgen.dem.judge import TileJudgement, judge_borders, judge_ground, tiles_near
 from gtgen.dem.place import DrivePlacement, Placement
-from gtgen.dem.tiles import DemMosaic, DemRef, TileIndex
+from gtgen.dem.tiles import DemMosaic, DemRef
 from gtgen.dem.track import TileTrack, judge_track, tile_tracks
 from gtgen.geometry import yaw_transform
 from gtgen.runtime.progress import track
