@@ -39,7 +39,7 @@ def cast_rate() -> None:
     from gtgen.config import SynthConfig
     from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
     from gtgen.synth import lidar
-    from gtgen.synth.sensors import RenderRaster
+    from gtgen.synth.camera import RenderRaster
     from gtgen.synth.world import SynthWorld
 
     sc = SynthConfig(duration_s=30, scan_azimuth_deg=AZ)

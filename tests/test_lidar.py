@@ -119,8 +119,8 @@ def test_synthetic_scans_hit_the_true_terrain_within_their_noise(drive_dir, cfg)
     ray by the range noise, with the configured dropouts; obstacles are hit too."""
     from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
     from gtgen.synth import lidar
+    from gtgen.synth.camera import RenderRaster
     from gtgen.synth.run import load_world
-    from gtgen.synth.sensors import RenderRaster
 
     world = load_world(drive_dir)
     sc = cfg.synth.model_copy(update={"scan_beams": 32, "scan_azimuth_deg": 1.0, "scan_noise_m": 0.05, "scan_dropout": 0.1})

@@ -13,8 +13,8 @@ from gtgen.bag.decode.gridmap import decode_gridmap
 from gtgen.bag.reader import BagSet
 from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
 from gtgen.synth import run_synth
+from gtgen.synth.camera import camera_extrinsic, camera_intrinsic
 from gtgen.synth.run import load_world
-from gtgen.synth.sensors import camera_extrinsic, camera_intrinsic
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -201,7 +201,7 @@ def test_unwritable_out(tmp_path):
 
 def test_fast_sampling_and_marching_equal_their_oracles(drive_dir, cfg):
     """Pooled tile sampling and block marching give the same numbers as the naive forms."""
-    from gtgen.synth.sensors import RenderRaster, march, march_naive
+    from gtgen.synth.camera import RenderRaster, march, march_naive
 
     world = load_world(drive_dir)
     terrain = world.terrain

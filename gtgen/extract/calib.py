@@ -18,7 +18,7 @@ from gtgen.bag.tf import TfBuffer
 from gtgen.config import GtgenConfig
 from gtgen.errors import PoseError, TopicError
 from gtgen.extract.images import StoredCamera
-from gtgen.extract.scan import DUPLICATE, Scan
+from gtgen.extract.inventory import DUPLICATE, Scan
 from gtgen.geometry import matrix_to_quat
 
 NO_TRANSFORM = "no_transform"

@@ -29,8 +29,8 @@ from gtgen.bag.poses import PoseTrack
 from gtgen.bag.reader import BagSet, stamp_ns
 from gtgen.bag.tf import TfBuffer
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.extract.inventory import Scan
 from gtgen.extract.lidar import deskew
-from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan, reference_stamps
 from gtgen.extract.voxels import padded, thinned_points
 from gtgen.mapping.mapper import Mapper

@@ -19,8 +19,9 @@ from gtgen.config import RANGES, GtgenConfig
 from gtgen.errors import BagError
 from gtgen.extract import calib, mapped
 from gtgen.extract.images import stored_cameras
+from gtgen.extract.inventory import Scan, merged
 from gtgen.extract.roles import mapping_topics, reference_role, resolve_roles
-from gtgen.extract.scan import Frames, Scan, import_readers, merged, prepass, scan_slice, slices
+from gtgen.extract.scan import Frames, import_readers, prepass, scan_slice, slices
 from gtgen.extract.select import Plan, select
 from gtgen.extract.write import Slices, write_large, write_small
 from gtgen.runtime.output import stage_output

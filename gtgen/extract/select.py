@@ -15,9 +15,9 @@ from numpy.typing import NDArray
 from gtgen import codes
 from gtgen.bag.poses import PoseTrack
 from gtgen.config import GtgenConfig
+from gtgen.extract.inventory import Scan
 from gtgen.extract.lidar import kept_scans
 from gtgen.extract.roles import reference_role
-from gtgen.extract.scan import Scan
 from gtgen.extract.stage import period_ns
 
 

@@ -26,9 +26,9 @@ from gtgen.errors import BagError, DecodeError
 from gtgen.extract import mapped
 from gtgen.extract.calib import map_to_odom
 from gtgen.extract.images import StoredCamera, capacity, read_source
+from gtgen.extract.inventory import Scan
 from gtgen.extract.lidar import compact, deskew
 from gtgen.extract.roles import is_large
-from gtgen.extract.scan import Scan
 from gtgen.extract.select import Plan
 from gtgen.extract.stage import STAGE, Staged
 from gtgen.extract.voxels import padded, thinned_points, to_odom_frame, voxel_points

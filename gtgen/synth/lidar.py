@@ -2,7 +2,7 @@
 carries three VLP-32C: front, front tilted down, back).
 
 Every beam of every column is a ray cast from the sensor's pose at the scan stamp over
-the world's render raster (``sensors.RenderRaster``: terrain with the trees, rocks and
+the world's render raster (``camera.RenderRaster``: terrain with the trees, rocks and
 bushes as its surface layer, 0.25 m cells, as a heightfield: a crown is hit from the
 side or above as the solid column of its height), see ``cast``.
 A return then gets range noise (``scan_noise_m``) and is dropped with probability
@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from gtgen.config import SynthConfig
 from gtgen.geometry import make_transform, quat_to_matrix, rpy_to_quat
-from gtgen.synth.sensors import DEPTHS, RenderRaster, march
+from gtgen.synth.camera import DEPTHS, RenderRaster, march
 
 # the VLP-32C's beam elevations [deg], lowest first
 VLP32C_DEG = np.array([-25.0, -15.64, -11.31, -8.84, -7.25, -6.15, -5.33, -4.67, -4.0, -3.67, -3.33, -3.0, -2.67, -2.33,
@@ -111,7 +111,7 @@ def cast(raster: RenderRaster, T_world_sensor: NDArray, rays: NDArray[np.float32
 
 
 def cast_naive(raster: RenderRaster, T_world_sensor: NDArray, rays: NDArray[np.float32], max_range_m: float) -> ScanHits:
-    """``cast`` by marching every ray on its own (``sensors.march``), then the same
+    """``cast`` by marching every ray on its own (``camera.march``), then the same
     bisection: the test oracle."""
     o = (T_world_sensor[:3, 3] - np.array([raster.u0, raster.v0, 0.0])).astype(np.float32)
     d = (rays @ T_world_sensor[:3, :3].T.astype(np.float32)).astype(np.float32)

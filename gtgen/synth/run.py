@@ -20,7 +20,7 @@ from gtgen.geometry import make_transform, matrix_to_quat, quat_to_matrix, resca
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
-from gtgen.synth import lidar, sensors
+from gtgen.synth import camera, lidar, sensors
 from gtgen.synth.drive import gnss_errors, gnss_outage
 from gtgen.synth.world import SynthWorld
 
@@ -126,7 +126,7 @@ def _write_drive(cfg: GtgenConfig, tmp: Path) -> SynthResult:
     from gtgen.synth.dem import write_dem_tiles
 
     tiles = write_dem_tiles(world, tmp / "dem")
-    raster = sensors.RenderRaster(world.terrain, world.bounds)
+    raster = camera.RenderRaster(world.terrain, world.bounds)
     sinks = _Sinks(tmp, sc.formats)
     try:
         _simulate(cfg, world, raster, sinks)
@@ -159,7 +159,7 @@ class _Ticker:
     not depend on how ticks are spread over worker processes.
     """
 
-    def __init__(self, cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster, formats: str) -> None:
+    def __init__(self, cfg: GtgenConfig, world: SynthWorld, raster: camera.RenderRaster, formats: str) -> None:
         from pyproj import Transformer
 
         sc, tp = cfg.synth, cfg.topics
@@ -177,8 +177,8 @@ class _Ticker:
         self.gnss_err = gnss_errors(sc, world.t_ns[gnss_idx])
         self.gnss_off = gnss_outage(sc, world.t_ns[gnss_idx])
         self.gnss_sigma = float(np.hypot(sc.gnss_bias_m, sc.gnss_noise_m))
-        self.K = sensors.camera_intrinsic(sc)
-        self.T_base_cam = {c: sensors.camera_extrinsic(c) for c in tp.cameras}
+        self.K = camera.camera_intrinsic(sc)
+        self.T_base_cam = {c: camera.camera_extrinsic(c) for c in tp.cameras}
         poses = world.poses
         self.q_true = rpy_to_quat(poses.rpy[:, 0], poses.rpy[:, 1], poses.rpy[:, 2])
         ro = world.odom.rpy_odom
@@ -361,8 +361,8 @@ class _Ticker:
         size, rsize = (sc.image_width, sc.image_height), (sc.render_width, sc.render_height)
         K_render = rescale_K(self.K, size, rsize)
         for c, topics in tp.cameras.items():
-            lens = sensors.camera_lens(sc, c)
-            img = sensors.render(self.raster, T_wb @ self.T_base_cam[c], K_render, rsize, lens if lens.distorted else None)
+            lens = camera.camera_lens(sc, c)
+            img = camera.render(self.raster, T_wb @ self.T_base_cam[c], K_render, rsize, lens if lens.distorted else None)
             # the camera's frame: the render upsampled (a smooth world; rays cost, pixels do not)
             jpeg = encode_jpeg(resize_image(img, *size), JPEG_QUALITY)
             frame = camera_frame(c)
@@ -388,7 +388,7 @@ def stack_drift(sc: SynthConfig, n_maps: int) -> np.ndarray | None:
 _TICKER: _Ticker | None = None  # the worker's ticker, made by _start_worker
 
 
-def _start_worker(cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster) -> None:
+def _start_worker(cfg: GtgenConfig, world: SynthWorld, raster: camera.RenderRaster) -> None:
     """Make this worker's ticker (its world and raster map their large arrays from files)."""
     global _TICKER
     _TICKER = _Ticker(cfg, world, raster, cfg.synth.formats)
@@ -400,7 +400,7 @@ def _tick_chunk(ks: range) -> list:
     return [m for k in ks for m in _TICKER.tick(k)]
 
 
-def _simulate(cfg: GtgenConfig, world: SynthWorld, raster: sensors.RenderRaster, sinks: _Sinks) -> None:
+def _simulate(cfg: GtgenConfig, world: SynthWorld, raster: camera.RenderRaster, sinks: _Sinks) -> None:
     """Tick the drive on the process pool, writing every message in tick order. The
     terrain's tile pool and the render raster reach the workers as files they map (not
     as pickles of hundreds of MB each)."""
