@@ -13,8 +13,10 @@ paper's batch-6 shapes (the naive one only when the machine has the memory free 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -146,6 +148,25 @@ if __name__ == "__main__":
     steps = 40
     dt, rss = run_measured(["train", str(dataset), "--preset", "tiny", "--steps", str(steps), "--run-dir", str(run)])
     print(f"tiny preset: {steps / dt:.2f} steps/s on CPU incl. start-up and 1 validation ({dt:.1f} s for {steps} steps); peak RSS {rss:.0f} MiB")
+    # train.precision bf16-mixed on the CPU (autocast): worth it only where the CPU has bf16
+    # matrix units (AMX, avx512_bf16); the same 40 steps in float32 and in bf16, in turn,
+    # compared by the median step time the run records (start-up left out)
+    import torch
+
+    if torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        med = {}
+        for prec in ("32", "bf16-mixed", "32", "bf16-mixed"):
+            cfg = OUT / f"precision_{prec}.yaml"
+            cfg.write_text(f"train:\n  precision: {prec}\n")
+            shutil.rmtree(run, ignore_errors=True)
+            run_measured(["train", str(dataset), "--preset", "tiny", "--steps", str(steps), "--run-dir", str(run), "--config", str(cfg)])
+            hist = json.loads((run / "metrics.json").read_text())["history"]
+            med.setdefault(prec, []).append(statistics.median(h["step_s"] for h in hist[5:]))
+        a, b = (statistics.median(med[p]) for p in ("32", "bf16-mixed"))
+        print(f"tiny preset step on this CPU: float32 {1000 * a:.0f} ms, bf16-mixed {1000 * b:.0f} ms ({b / a:.2f}x; median of "
+              f"{len(med['32'])} runs each, in turn)")
+    else:
+        print("tiny preset step in bf16-mixed: not measured (this CPU has no bf16 matrix units: autocast would emulate bf16)")
     B = os.environ.get("BENCH_PAPER_BATCH", "1")
     runs = {p: py(PAPER_STEP, B, p) for p in ("chunked", "naive")}
     (tc_, mc), (tn, mn) = ((float(a), float(b)) for a, b in (runs["chunked"], runs["naive"]))

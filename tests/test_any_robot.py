@@ -121,13 +121,14 @@ def test_a_dataset_without_cameras_or_dem_reports_trains_evaluates_and_skips_the
 
 def test_experiments_on_a_dataset_without_cameras_skip_the_camera_rows(blind):
     import gtgen.train.experiments as ex
+    import gtgen.train.tables as tables
 
-    plan = ex._plan(True, ex.parse_tables("I,II"), cameras=False)
+    plan = ex._plan(True, tables.parse_tables("I,II"), cameras=False)
     assert plan.no_cameras == ["LSS"] and not any(r.startswith("lss") for r in plan.needed)
     assert all(plan.runs[r].train.get("cameras") is False for r in plan.needed)
     labels = {ln.label: ln.inputs for ln in plan.tables[0].lines}
     assert labels["Ours"] == "VM" and labels["RoadRunner"] == "L + E" and labels["X-Racer at t"] == "C + VM"
-    assert ex._plan(True, ex.parse_tables("I"), cameras=True).no_cameras == []
+    assert ex._plan(True, tables.parse_tables("I"), cameras=True).no_cameras == []
 
 
 @pytest.fixture(scope="module")

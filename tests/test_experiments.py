@@ -250,6 +250,7 @@ def test_experiments_seeds_give_mean_and_spread(with_val, tmp_path):
 def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
     """A session cut short holds whole tables of the seeds it finished."""
     from gtgen.train import experiments as ex
+    from gtgen.train import tables
 
     order = []
 
@@ -258,7 +259,7 @@ def test_every_run_of_a_seed_comes_before_the_next_seed(monkeypatch, tmp_path):
         return {"train_s": 0.0}, True
 
     monkeypatch.setattr(ex, "_run_one", fake_run_one)
-    plan = ex._plan(False, ex.parse_tables("i,iv"))
+    plan = ex._plan(False, tables.parse_tables("i,iv"))
     base = ex.load_config(None, ex.preset_overrides("tiny"), {})
     res = ex.ExperimentsResult(tmp_path, tmp_path / "e.json", tmp_path / "e.md", "val", [], [])
     ex._train_and_evaluate(tmp_path, "id", tmp_path, plan, base, 2, 3, "val", None, None, res)

@@ -206,10 +206,10 @@ QA_GRIDS = {"labels": ("confidence", "count", "last_dt_s"), "xracer": ("confiden
 READ_BY = {
     "labels/{r}/elevation_m": "train, eval, report, viz, export", "labels/{r}/risk": "train, eval, report, viz, export",
     "labels/{r}/region": "train, eval, report, viz, export", "labels/{r}/confidence": "QA: viz, export mcap",
-    "labels/{r}/count": "QA: export", "labels/{r}/last_dt_s": "QA: export", "xracer/{r}/elevation_m": "train, eval (X-Racer row), report, viz",
-    "xracer/{r}/risk": "train, eval (X-Racer row), export mcap", "xracer/{r}/confidence": "QA: report (X-Racer's confident cells; else region 1), export mcap",
+    "labels/{r}/count": "QA: export", "labels/{r}/last_dt_s": "QA: export", "xracer/{r}/elevation_m": "eval (X-Racer row), report, viz",
+    "xracer/{r}/risk": "eval (X-Racer row), export mcap", "xracer/{r}/confidence": "QA: report (X-Racer's confident cells; else region 1), export mcap",
     "dem/{r}/elevation_m": "QA: viz, export (its heights the label needs are region 3's already)",
-    "inputs/raw_elevation_m": "train, eval (raw-grid rows)", "inputs/voxel_points_m": "train, eval, export mcap",
+    "inputs/raw_elevation_m": "train (the raw and prior grids), eval (raw-grid rows)", "inputs/voxel_points_m": "train, eval, export mcap",
     "inputs/scan_points_m": "train (train.geometry: scans)",
 }
 

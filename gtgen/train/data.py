@@ -270,9 +270,9 @@ class ShardDataset(Dataset):
                 out[f"{r}/xr_risk"] = torch.from_numpy(self._grid(g[("xracer", r, "risk")][k], r).astype(np.float32))
         # the raw min-z grid is short range (the evaluation's raw baselines read it too); its
         # micro view is exactly its centre half
-        stored = g["raw_elevation_m"][k]
-        n_s = stored.shape[0]
+        stored = g["raw_elevation_m"][k] if tc.raw_elevation or self.baselines else None
         if tc.raw_elevation:
+            n_s = stored.shape[0]
             # the N-scan input replaces the voxel map in the network's inputs (not in the baselines)
             raw_s = stored if scan_pts is None else raw_min_z(scan_pts, n_s, self.data_cfg.grids.short.length_m / n_s)
             # the priors the heads correct, each grid at its own resolution, scaled like "raw":
