@@ -157,7 +157,7 @@ if __name__ == "__main__":
         med = {}
         for prec in ("32", "bf16-mixed", "32", "bf16-mixed"):
             cfg = OUT / f"precision_{prec}.yaml"
-            cfg.write_text(f"train:\n  precision: {prec}\n")
+            cfg.write_text(f"train:\n  precision: '{prec}'\n")
             shutil.rmtree(run, ignore_errors=True)
             run_measured(["train", str(dataset), "--preset", "tiny", "--steps", str(steps), "--run-dir", str(run), "--config", str(cfg)])
             hist = json.loads((run / "metrics.json").read_text())["history"]
