@@ -118,8 +118,7 @@ from pathlib import Path
 from gtgen.storage.dataset import DatasetStore
 from gtgen.grids import filled, smoothed_min_z
 info = DatasetStore(Path(sys.argv[1]))
-g = info.group
-raw = g["inputs/raw_elevation_m"]
+raw = info.inputs("raw_elevation_m")  # decoded to metres (NaN: no point), as the loader reads it
 grids = [smoothed_min_z(raw[k], 5) for k in range(0, info.n_samples, max(1, info.n_samples // 12))]
 t = [0.0, 0.0]
 for rep in range(3):
