@@ -44,6 +44,22 @@ def drive(duration_s: float, seed: int = 0, fmt: str = "mcap") -> Path:
     return out
 
 
+def bench_dataset() -> Path:
+    """Return the dataset ``BENCH_DATASET`` names, else that of the 120 s default drive
+    (built once into ``bench/out/ws_pipeline``)."""
+    if "BENCH_DATASET" in os.environ:
+        return Path(os.environ["BENCH_DATASET"])
+    d = drive(120)
+    ws = OUT / "ws_pipeline"
+    dataset = ws / "dataset.zarr"
+    if not dataset.is_dir():
+        ws.mkdir(parents=True, exist_ok=True)
+        run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
+        run_measured(["fuse", str(ws / "drive.zarr")])
+        run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
+    return dataset
+
+
 def fresh_workspace(name: str) -> Path:
     """Return an empty folder ``bench/out/<name>`` (removed and made anew), removed again
     when the bench exits (stores of a long drive take GBs), unless GTGEN_BENCH_KEEP=1."""

@@ -15,9 +15,8 @@ import json
 import os
 import shutil
 import time
-from pathlib import Path
 
-from _common import OUT, drive, header, run_measured
+from _common import OUT, bench_dataset, header
 
 if __name__ == "__main__":
     header("bench/experiments.py")
@@ -27,16 +26,7 @@ if __name__ == "__main__":
     from gtgen.train.presets import preset_overrides
     from gtgen.train.trainer import evaluate, train
 
-    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else None
-    if dataset is None:
-        d = drive(120)
-        ws = OUT / "ws_pipeline"
-        dataset = ws / "dataset.zarr"
-        if not dataset.is_dir():
-            ws.mkdir(parents=True, exist_ok=True)
-            run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
-            run_measured(["fuse", str(ws / "drive.zarr")])
-            run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
+    dataset = bench_dataset()
     store = DatasetStore(dataset)
     plan = _plan(store.has_scans, ("I", "II", "III", "IV"))
     steps = int(os.environ.get("BENCH_EXPERIMENT_STEPS", "12"))

@@ -16,12 +16,11 @@ The 120 s default drive's dataset (cached in ``bench/out``), or ``BENCH_DATASET`
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
-from _common import OUT, drive, header, run_measured
+from _common import bench_dataset, header
 
 LOADER = """
 import sys, time, torch
@@ -55,22 +54,9 @@ def rate(dataset: Path, workers: int, preset: str, read: str) -> float:
     return float(p.stdout.split()[-1])
 
 
-def dataset_of_default_drive() -> Path:
-    """Return the dataset of the 120 s default drive (built once into ``bench/out``)."""
-    d = drive(120)
-    ws = OUT / "ws_pipeline"
-    dataset = ws / "dataset.zarr"
-    if not dataset.is_dir():
-        ws.mkdir(parents=True, exist_ok=True)
-        run_measured(["extract", str(d / "drive.mcap"), "-o", str(ws / "drive.zarr")])
-        run_measured(["fuse", str(ws / "drive.zarr")])
-        run_measured(["dem-align", str(ws / "drive.zarr"), "--dem", str(d / "dem")])
-    return dataset
-
-
 if __name__ == "__main__":
     header("bench/loader.py")
-    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else dataset_of_default_drive()
+    dataset = bench_dataset()
     for preset in ("tiny", "paper"):
         for workers in (0, 2):
             ev, tr = rate(dataset, workers, preset, "eval"), rate(dataset, workers, preset, "train")

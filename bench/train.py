@@ -19,11 +19,8 @@ import shutil
 import statistics
 import subprocess
 import sys
-from pathlib import Path
 
-from loader import dataset_of_default_drive
-
-from _common import OUT, header, run_measured
+from _common import OUT, bench_dataset, header, run_measured
 
 # one paper-preset training step on random inputs of the paper's sizes: seconds of the
 # second step and the process's peak RSS; argv: batch, pooling (chunked | naive)
@@ -140,8 +137,7 @@ def py(code: str, *args: str) -> list[str]:
 
 if __name__ == "__main__":
     header("bench/train.py")
-    # an existing dataset instead of the default drive's
-    dataset = Path(os.environ["BENCH_DATASET"]) if "BENCH_DATASET" in os.environ else dataset_of_default_drive()
+    dataset = bench_dataset()
     run = OUT / "run_tiny"
     shutil.rmtree(run, ignore_errors=True)
     steps = 40
