@@ -137,3 +137,17 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
 def needs_realdata() -> pytest.MarkDecorator:
     return pytest.mark.skipif(not REALDATA.is_dir(), reason=f"shared/realdata not found at {REALDATA}")
 
+
+
+def assert_same_store(a: Path, b: Path) -> None:
+    """Assert that two zarr stores hold the same arrays with the same values (NaN where NaN)."""
+    import numpy as np
+    import zarr
+
+    def arrays(store: Path) -> dict:
+        return {k: v[...] for k, v in zarr.open_group(str(store), mode="r").members(max_depth=None) if isinstance(v, zarr.Array)}
+
+    x, y = arrays(a), arrays(b)
+    assert x.keys() == y.keys() and len(x) > 20
+    for k in x:
+        assert np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), k

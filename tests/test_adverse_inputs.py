@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zarr
 
 from bagtools import rewrite
-from conftest import SMALL, run_cli
+from conftest import SMALL, assert_same_store, run_cli
 from gtgen.bag.reader import stamp_ns
 from gtgen.storage.drive import DriveStore
 
@@ -56,17 +55,6 @@ def error_line(p: subprocess.CompletedProcess, code: int) -> str:
         assert lines[0].startswith("Usage: gtgen ")
     assert lines[-1].startswith("error: ")
     return lines[-1]
-
-
-def arrays(store: Path) -> dict[str, np.ndarray]:
-    return {k: v[...] for k, v in zarr.open_group(str(store), mode="r").members(max_depth=None) if isinstance(v, zarr.Array)}
-
-
-def assert_same_store(a: Path, b: Path) -> None:
-    x, y = arrays(a), arrays(b)
-    assert x.keys() == y.keys() and len(x) > 20
-    for k in x:
-        assert np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), k
 
 
 def topics(store: Path) -> dict[str, dict]:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from conftest import REALDATA, needs_realdata
+from conftest import REALDATA, assert_same_store, needs_realdata
 from gtgen.dataset.dem_align import run_dem_align
 from gtgen.dem.index import TileIndex
 from gtgen.dem.tiles import DemMosaic, sample_bilinear
@@ -300,7 +300,9 @@ def test_a_shift_the_borders_miss_is_put_back_by_the_drives_track(dataset, drive
     """The drive's DEM as two tiles, the second 2.5 m off and its borders told not to see it
     (as on smooth ground): ICP follows it, and the placements over it stand off those over
     the first beyond odometry's drift; dem-align reads it put back by that difference, every
-    sample kept (the old chain carried the shift into the placements)."""
+    sample kept (the old chain carried the shift into the placements). The chain runs
+    again with the tile put back: what the shards built during its first pass wrote is
+    void, and the dataset is the one built after the last pass, byte for byte."""
     from gtgen.config import load_config
     from gtgen.report.rejections import rejection_truth
     from gtgen.synth.truth import Truth
@@ -309,6 +311,8 @@ def test_a_shift_the_borders_miss_is_put_back_by_the_drives_track(dataset, drive
     _two_tiles(drive_dir / "dem", tmp_path / "dem", ref.meta("T_crs_target"), (2.5, 0.0))
     blind = load_config(None, cfg.model_dump(mode="json"), {"dem": {"tile_border_gain": 1e6}})  # borders never put a tile back
     run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "ds.zarr", blind, workers=1)
+    run_dem_align(drive_store, fused_store, tmp_path / "dem", tmp_path / "after.zarr", blind, workers=1, stream=False)
+    assert_same_store(tmp_path / "ds.zarr", tmp_path / "after.zarr")
     ds = DatasetStore(tmp_path / "ds.zarr")
     s = next(t for t in ds.info.drives[0].tiles if "part1" in t.path)
     assert s.status == "corrected" and "placements" in s.reason and np.hypot(*s.applied_m[:2]) > 1.0, s

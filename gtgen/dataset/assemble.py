@@ -63,19 +63,21 @@ class Kept:
     vegetation_share: float
 
 
-_OPEN: dict[Path, DemSource] = {}
+_OPEN: dict[tuple[Path, DemRef], DemSource] = {}
 
 
 def _dem(ctx: Context) -> DemSource | None:
-    """Return the DEM of ``ctx``, opened once per worker and dataset (None: no DEM)."""
+    """Return the DEM of ``ctx``, opened once per worker, dataset and DEM (a pass of the
+    ICP chain that sets tiles aside or puts them back reads another; None: no DEM)."""
     if ctx.dem is None:
         return None
-    if ctx.out_path not in _OPEN:
+    key = (ctx.out_path, ctx.dem)
+    if key not in _OPEN:
         for dem in _OPEN.values():
             dem.close()
         _OPEN.clear()
-        _OPEN[ctx.out_path] = ctx.dem.open()
-    return _OPEN[ctx.out_path]
+        _OPEN[key] = ctx.dem.open()
+    return _OPEN[key]
 
 
 def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.float32]]:

@@ -4,8 +4,8 @@ write the dataset.
 ``run_dem_align`` reads like its steps: open the drive and fused stores, align the DEM
 to the drive (``gtgen.dem.run.align_drive``: GNSS fit, ICP chain, tiles set aside; without
 a DEM, ``dem.enabled: false``, every fused sample is kept unplaced), record the rejected
-samples, assemble and write the kept ones a shard at a time on the pool, and last the
-dataset's attributes.
+samples and assemble and write the kept ones a shard at a time on the pool while the ICP
+chain runs on (``_Build``), and last the dataset's attributes.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ from gtgen.dem.fit import PlanarFit
 from gtgen.dem.index import default_dem_dir
 from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
-from gtgen.dem.run import Alignment, align_drive, unplaced
+from gtgen.dem.run import Alignment, ChainWatch, Outcome, align_drive, unplaced
+from gtgen.dem.tiles import DemRef
 from gtgen.errors import ConfigError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
@@ -53,29 +54,27 @@ class AlignResult:
 
 
 def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out: Path, cfg: GtgenConfig,
-                  workers: int = 2, overwrite: bool = False) -> AlignResult:
+                  workers: int = 2, overwrite: bool = False, stream: bool = True) -> AlignResult:
     """Align the DEM to every fused sample of a drive and write the dataset ``out`` (atomically).
 
     The ICP chain is sequential; building and writing the kept samples runs on
-    ``workers`` processes alongside it. The dataset does not depend on ``workers``.
+    ``workers`` processes alongside it (``stream``: each shard as soon as the chain has
+    placed its samples, the work of a pass the chain runs again thrown away; else once the
+    chain is done, the oracle). The dataset depends on neither ``workers`` nor ``stream``.
     With ``dem.enabled`` false no DEM is read (``dem_dir`` must be None): every fused sample
     is kept with the fused labels alone.
     """
     drive, fused = DriveStore(drive_path), FusedStore(fused_path)
     _check_grids(fused, cfg)
-    with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, \
-            _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json") as al:
-        writer = ShardWriter(tmp, drive.n_samples, cfg.grids.micro.size, cfg.grids.short.size, len(drive.cameras), drive.jpeg_capacity,
-                             scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(drive.scans) else None,
-                             precision=cfg.shards.precision, qa_ranges=cfg.shards.qa_ranges)
-        kept = _record(al, writer)
-        ctx = Context(drive, fused, al.dem, tmp, cfg)
-        with Pool(workers) as pool:
-            blocks = _Blocks(ctx, pool, writer)
-            for item in kept:
-                blocks.add(item)
-            blocks.finish()
-        entry = drive_entry(drive_path, drive, al)
+    with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, Pool(workers) as pool:
+        build = _Build(drive, fused, tmp, cfg, pool)
+        with _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json", build if stream else None) as al:
+            if not stream:
+                build.start(al.dem)
+                for o in al.outcomes:
+                    build.outcome(o)
+            writer = build.finish()
+            entry = drive_entry(drive_path, drive, al)
         n = writer.close(dataset_attrs(cfg, [entry], drive.image_size, drive.cameras))
         splits = writer.split_counts()
     p = al.placement
@@ -86,15 +85,17 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
 
 
 @contextlib.contextmanager
-def _aligned(drive: DriveStore, fused: FusedStore, dem_dir: Path | None, cfg: GtgenConfig, cache: Path) -> Iterator[Alignment]:
+def _aligned(drive: DriveStore, fused: FusedStore, dem_dir: Path | None, cfg: GtgenConfig, cache: Path,
+             watch: ChainWatch | None) -> Iterator[Alignment]:
     """Yield the drive's alignment to its DEM (``dem_dir``, else the configured or default
-    one), or its unplaced outcomes when ``dem.enabled`` is false."""
+    one), or its unplaced outcomes when ``dem.enabled`` is false; ``watch`` follows it."""
     if not cfg.dem.enabled:
         if dem_dir is not None:
             raise ConfigError(f"--dem {dem_dir} given with --no-dem (dem.enabled: false); expected one of them")
-        yield unplaced(drive, fused)
+        yield unplaced(drive, fused, watch)
         return
-    with align_drive(drive, fused, dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags]), cfg, cache) as al:
+    with align_drive(drive, fused, dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags]), cfg, cache,
+                     watch) as al:
         yield al
 
 
@@ -110,24 +111,6 @@ def _check_grids(fused: FusedStore, cfg: GtgenConfig) -> None:
                               "or pass the config it was fused with")
 
 
-def _record(al: Alignment, writer: ShardWriter) -> list[Kept]:
-    """Record the rejected samples; return the kept ones."""
-    kept = []
-    for o in al.outcomes:
-        p = o.placement
-        if not isinstance(p, Placement):
-            writer.reject(o.t_ns, 0, p, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad)
-        elif p.reason != codes.OK:
-            writer.reject(o.t_ns, 0, p.reason, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad, **_qa(p))
-        else:
-            s = p.signals
-            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m), or no DEM (no placement at all)
-            fit, rmse, C = (p.icp.fitness, p.icp.rmse_m, p.icp.T) if p.icp else (np.nan, np.nan, np.eye(4))
-            T = p.T_crs_target if p.T_crs_target is not None else np.full((4, 4), np.nan)
-            kept.append(Kept(o.k, T, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
-    return kept
-
-
 def _qa(p: Placement) -> dict[str, Any]:
     """Return what the dataset records of a rejected sample's placement."""
     if p.icp is None:  # no ICP ran: the placement it would have started from
@@ -138,34 +121,75 @@ def _qa(p: Placement) -> dict[str, Any]:
             "dem_disagreement": s["disagreement"], "gnss_offset_m": s["gnss_offset_m"], "vegetation_share": s["vegetation_share"]}
 
 
-class _Blocks:
-    """Kept samples, built and written one shard at a time on the pool, collected in order
-    (so memory holds only a few blocks)."""
+class _Build:
+    """The dataset written while the ICP chain places the samples (a ``ChainWatch``): the
+    rejected samples are recorded, the kept ones queued a shard at a time as the chain
+    places them and built and written on the pool, on one worker fewer than it has while
+    the chain holds a core, on all of them after; the shards are collected in order with
+    a few in flight (so memory holds only those). A new pass of the chain voids the one
+    before: its shards are waited for and the store starts anew."""
 
-    def __init__(self, ctx: Context, pool: Pool, writer: ShardWriter) -> None:
-        self.ctx, self.pool, self.writer = ctx, pool, writer
-        self.items: list[Kept] = []
-        self.start = 0
+    IN_FLIGHT = 4  # shards built at once at most once the chain is done
+
+    def __init__(self, drive: DriveStore, fused: FusedStore, tmp: Path, cfg: GtgenConfig, pool: Pool) -> None:
+        self.drive, self.fused, self.tmp, self.cfg, self.pool = drive, fused, tmp, cfg, pool
+        self.writer: ShardWriter | None = None
         self.futures: list[Future] = []
 
-    def add(self, item: Kept) -> None:
-        self.items.append(item)
-        if len(self.items) == SAMPLES_PER_SHARD:
-            self._submit()
+    def start(self, dem: DemRef | None) -> None:
+        for f in self.futures:  # a pass before this one: its shards finish, then go with the store
+            f.result()
+        d, cfg = self.drive, self.cfg
+        self.writer = ShardWriter(self.tmp, d.n_samples, cfg.grids.micro.size, cfg.grids.short.size, len(d.cameras), d.jpeg_capacity,
+                                  scans=(cfg.shards.max_scan_points, cfg.shards.max_scans) if len(d.scans) else None,
+                                  precision=cfg.shards.precision, qa_ranges=cfg.shards.qa_ranges)
+        self.ctx = Context(d, self.fused, dem, self.tmp, cfg)
+        self.items: list[Kept] = []
+        self.queue: list[tuple[int, list[Kept]]] = []  # (dataset index of the first, samples) of shards not yet submitted
+        self.futures = []
+        self.next = 0  # dataset index of the first sample in ``items``
 
-    def _submit(self) -> None:
-        if not self.items:
-            return
-        self.futures.append(self.pool.submit(build_block, self.ctx, self.start, self.items))
-        while self.futures and (self.futures[0].done() or len(self.futures) > 4):
+    def outcome(self, o: Outcome) -> None:
+        p, w = o.placement, self.writer
+        if not isinstance(p, Placement):
+            w.reject(o.t_ns, 0, p, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad)
+        elif p.reason != codes.OK:
+            w.reject(o.t_ns, 0, p.reason, pos_odom_m=o.pos_odom_m, yaw_odom_rad=o.yaw_odom_rad, **_qa(p))
+        else:
+            s = p.signals
+            # no ICP: carried over set-aside tiles by odometry (dem.carry_over_m), or no DEM (no placement at all)
+            fit, rmse, C = (p.icp.fitness, p.icp.rmse_m, p.icp.T) if p.icp else (np.nan, np.nan, np.eye(4))
+            T = p.T_crs_target if p.T_crs_target is not None else np.full((4, 4), np.nan)
+            self.items.append(Kept(o.k, T, fit, rmse, C, s["disagreement"], s["gnss_offset_m"], s["vegetation_share"]))
+            if len(self.items) == SAMPLES_PER_SHARD:
+                self._queue()
+        self._pump(max(1, self.pool.workers - 1), wait=False)
+
+    def _queue(self) -> None:
+        if self.items:
+            self.queue.append((self.next, self.items))
+            self.next += len(self.items)
+            self.items = []
+
+    def _pump(self, in_flight: int, wait: bool) -> None:
+        """Collect the finished shards in order and submit queued ones up to ``in_flight``
+        (``wait``: until the queue is empty, waiting for the oldest shard when it is full)."""
+        while True:
+            while self.futures and self.futures[0].done():
+                self.writer.add_block(self.futures.pop(0).result())
+            while self.queue and len(self.futures) < in_flight:
+                self.futures.append(self.pool.submit(build_block, self.ctx, *self.queue.pop(0)))
+            if not (wait and self.queue):
+                return
             self.writer.add_block(self.futures.pop(0).result())
-        self.start += len(self.items)
-        self.items = []
 
-    def finish(self) -> None:
-        self._submit()
+    def finish(self) -> ShardWriter:
+        """Write the last samples of the last pass; return its writer (to close)."""
+        self._queue()
+        self._pump(self.IN_FLIGHT, wait=True)
         while self.futures:
             self.writer.add_block(self.futures.pop(0).result())
+        return self.writer
 
 
 def drive_entry(drive_path: Path, drive: DriveStore, al: Alignment, name: str | None = None) -> DriveEntry:

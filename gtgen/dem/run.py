@@ -7,6 +7,9 @@ the drive (GNSS fit, coverage, vertical offset), judge the tiles near it by thei
 ICP chain over the samples, and when the drive's observed ground disagrees with a tile, set
 it aside and run the chain again; when the placements over a tile stand off those over the
 others beyond odometry's drift (``gtgen.dem.track``), put it back and run the chain again.
+
+A ``ChainWatch`` follows the chain sample by sample (dem-align builds the kept samples
+while the chain runs on): each pass begins with ``start`` and voids the passes before it.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +53,17 @@ class Outcome:
     placement: Placement | int
 
 
+class ChainWatch(Protocol):
+    """What follows the ICP chain as it places the samples."""
+
+    def start(self, dem: DemRef | None) -> None:
+        """A pass over every sample begins, reading ``dem`` (None: no DEM); what the passes
+        before it gave is void."""
+
+    def outcome(self, o: Outcome) -> None:
+        """Sample ``o.k``'s outcome in this pass (the samples come in order)."""
+
+
 @dataclass
 class Alignment:
     """A drive's DEM alignment: the placement (its fit, vertical offset and DEM, without
@@ -73,43 +88,58 @@ class Alignment:
 
 
 @contextlib.contextmanager
-def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: GtgenConfig, cache: Path | None) -> Iterator[Alignment]:
+def align_drive(drive: DriveStore, fused: FusedStore, dem_source: Path, cfg: GtgenConfig, cache: Path | None,
+                watch: ChainWatch | None = None) -> Iterator[Alignment]:
     """Yield the DEM alignment of every fused sample of the drive (the DEM stays open
-    while the block runs); ``cache`` keeps the tiles' headers."""
+    while the block runs); ``cache`` keeps the tiles' headers; ``watch`` follows every pass
+    of the chain (the last it starts is the alignment's)."""
     index = TileIndex.build(dem_source, cache=cache)
     crs = index.working_crs(*gnss_lonlat(cfg, drive.gnss()))
+
+    def ref(placement: DrivePlacement) -> DemRef:  # how to open the DEM a placement reads elsewhere
+        dem = placement.dem
+        return DemRef(str(dem_source), str(cache) if cache else None, crs, dem.exclude, tuple(sorted(dem.offsets.items())))
+
+    def chain(placement: DrivePlacement) -> tuple[list[Outcome], list[float]]:
+        if watch is not None:
+            watch.start(ref(placement))
+        return _icp_chain(drive, fused, placement, watch)
+
     placement = DrivePlacement.of_drive(cfg, drive, fused, DemMosaic(index, crs), dem_source)
     try:
         tiles = judge_borders(placement.dem, _near(placement, drive, cfg), cfg.dem)
         aside = frozenset(i for i, t in tiles.items() if t.status == "set_aside")
         placement = placement.adjusted(aside, {i: t.put_back for i, t in tiles.items() if t.put_back is not None})
-        outcomes, fitness = _icp_chain(drive, fused, placement)
+        outcomes, fitness = chain(placement)
         tiles, more = judge_ground(tiles, placement.dem.tile_names, placement.tile_cells, placement.tile_bad, cfg.dem)
         if more:  # the drive's ground disagrees with tiles the borders kept: place it again without them
             placement = placement.without(more)
-            outcomes, fitness = _icp_chain(drive, fused, placement)
+            outcomes, fitness = chain(placement)
         for _ in range(TRACK_PASSES):  # ICP follows a shifted tile part of the way: what is left shows on the next pass
             tiles, back = judge_track(tiles, placement.dem.tile_names, _tracks(placement, outcomes, drive), placement.gnss_sd_m, cfg.dem)
             if not back:
                 break
             # the placements over a tile stand off the others' beyond odometry's drift: place the drive again, the tile put back
             placement = placement.adjusted(frozenset(), {**placement.dem.offsets, **back})
-            outcomes, fitness = _icp_chain(drive, fused, placement)
-        dem = placement.dem
-        ref = DemRef(str(dem_source), str(cache) if cache else None, crs, dem.exclude, tuple(sorted(dem.offsets.items())))
-        yield Alignment(placement, outcomes, dem.exclude, fitness, ref, [tiles[i] for i in sorted(tiles)])
+            outcomes, fitness = chain(placement)
+        yield Alignment(placement, outcomes, placement.dem.exclude, fitness, ref(placement), [tiles[i] for i in sorted(tiles)])
     finally:
         placement.dem.close()
 
 
-def unplaced(drive: DriveStore, fused: FusedStore) -> Alignment:
+def unplaced(drive: DriveStore, fused: FusedStore, watch: ChainWatch | None = None) -> Alignment:
     """Return the outcomes of a drive without a DEM (``dem.enabled: false``): every sample
-    fusion kept is kept, none is placed (no placement, no ICP, no signals)."""
+    fusion kept is kept, none is placed (no placement, no ICP, no signals); ``watch`` sees
+    them as one pass."""
     s = drive.samples
     reason_f = fused.reason()
     none = {"disagreement": np.nan, "gnss_offset_m": np.nan, "vegetation_share": np.nan}
     out = [Outcome(k, int(s.t_ns[k]), s.pos_odom_m[k], float(s.yaw_odom_rad[k]),
                    Placement(codes.OK, signals=none) if reason_f[k] == codes.OK else int(reason_f[k])) for k in range(len(s))]
+    if watch is not None:
+        watch.start(None)
+        for o in out:
+            watch.outcome(o)
     return Alignment(None, out, frozenset(), [], None, [])
 
 
@@ -139,9 +169,11 @@ def _tracks(placement: DrivePlacement, outcomes: list[Outcome], drive: DriveStor
     return tile_tracks(tile, dist, np.stack([d for d, _ in off]), np.stack([g for _, g in off]), placement.cfg.dem.tile_track_samples)
 
 
-def _icp_chain(drive: DriveStore, fused: FusedStore, placement: DrivePlacement) -> tuple[list[Outcome], list[float]]:
-    """Place every fused sample in turn (each starts from the previous kept placement);
-    return each sample's outcome and the ICP fitness of every sample ICP ran on."""
+def _icp_chain(drive: DriveStore, fused: FusedStore, placement: DrivePlacement,
+               watch: ChainWatch | None = None) -> tuple[list[Outcome], list[float]]:
+    """Place every fused sample in turn (each starts from the previous kept placement),
+    handing each outcome to ``watch`` as it comes; return each sample's outcome and the ICP
+    fitness of every sample ICP ran on."""
     s = drive.samples
     reason_f = fused.reason()
     region, elev = fused.grid("short", "region"), fused.grid("short", "elevation_m")
@@ -150,10 +182,13 @@ def _icp_chain(drive: DriveStore, fused: FusedStore, placement: DrivePlacement) 
     for k in track(range(len(s)), "dem-align: samples"):
         t, pos, yaw = int(s.t_ns[k]), s.pos_odom_m[k], float(s.yaw_odom_rad[k])
         if reason_f[k] != codes.OK:
-            out.append(Outcome(k, t, pos, yaw, int(reason_f[k])))
-            continue
-        p = placement.place(k, t, pos, yaw, region[k], elev[k], float(s.distance_m[k]))
-        if p.icp is not None:
-            fitness.append(p.icp.fitness)
-        out.append(Outcome(k, t, pos, yaw, p))
+            o = Outcome(k, t, pos, yaw, int(reason_f[k]))
+        else:
+            p = placement.place(k, t, pos, yaw, region[k], elev[k], float(s.distance_m[k]))
+            if p.icp is not None:
+                fitness.append(p.icp.fitness)
+            o = Outcome(k, t, pos, yaw, p)
+        out.append(o)
+        if watch is not None:
+            watch.outcome(o)
     return out, fitness
