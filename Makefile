@@ -14,7 +14,7 @@ demo: setup
 
 test: setup
 	$(BIN)/ruff check gtgen pipelines tests bench scripts
-	$(BIN)/python -m pytest -n 2 -p no:cacheprovider tests
+	$(BIN)/python -m pytest -n 2 --dist worksteal -p no:cacheprovider tests
 
 # the docs group is installed only where it is missing; --strict fails on a broken link,
 # anchor or include, and on a reference page the code cannot generate

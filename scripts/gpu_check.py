@@ -1,6 +1,6 @@
 """The figures of ``scripts/gpu_check.sh``: training speed and memory from the run's
 metrics.json, eval time per sample from eval.json, and the inference latency of the
-checkpoint's network on the device (batch 1, the run's precision, median of 20).
+checkpoint's network on the device (batch 1, the run's precision, median of GPU_CHECK_REPEATS runs, default 20).
 
     python scripts/gpu_check.py RUN_DIR EVAL_JSON DEVICE
 """
@@ -8,6 +8,7 @@ checkpoint's network on the device (batch 1, the run's precision, median of 20).
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import sys
 import time
@@ -52,7 +53,7 @@ def main(run: Path, eval_json: Path, device: str) -> None:
     ev = json.loads(eval_json.read_text())
     steps = len(m["history"])
     step_s = sum(h["step_s"] for h in m["history"][1:]) / max(steps - 1, 1)  # the first step warms up
-    ms, precision = latency_ms(run / "ckpt.pt", device)
+    ms, precision = latency_ms(run / "ckpt.pt", device, int(os.environ.get("GPU_CHECK_REPEATS", "20")))
     peak = m["peak_memory_mib"]
     rows = [
         ("device", f"{m['device']}, precision {m['precision']}"),

@@ -269,7 +269,8 @@ def test_gpu_check_script_runs_in_its_cpu_mode(dataset, tmp_path):
     if torch.cuda.is_available():
         pytest.skip("the GPU mode trains the paper preset for 300 steps")
     root = Path(__file__).resolve().parent.parent
-    env = dict(os.environ, GPU_CHECK_OUT=str(tmp_path / "gc"), GPU_CHECK_STEPS="2", PYTHON=sys.executable)
+    env = dict(os.environ, GPU_CHECK_OUT=str(tmp_path / "gc"), GPU_CHECK_STEPS="2", GPU_CHECK_REPEATS="2",
+               PYTHON=sys.executable)
     p = subprocess.run(["bash", str(root / "scripts" / "gpu_check.sh"), str(dataset)], capture_output=True, text=True, timeout=600, env=env)
     assert p.returncode == 0, p.stderr[-3000:]
     out = {line[:28].strip(): line[29:] for line in p.stdout.splitlines()[1:]}  # "key (padded to 28) value"
