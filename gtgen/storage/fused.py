@@ -100,7 +100,7 @@ class FusedWriter(StoreWriter):
             for r in RANGES:
                 n = sizes[r]
                 for layer in layers:
-                    self.create(f"{kind}/{r}/{layer}", (n_samples, n, n), chunks=(1, n, n))
+                    self.create(f"{kind}/{r}/{layer}", (n_samples, n, n), chunks=(1, n, n), flat=True)
 
     def write_sample(self, rng: str, k: int, labels: dict[str, NDArray], xracer: dict[str, NDArray]) -> None:
         """Write sample ``k``'s fused ``labels`` and X-Racer ``xracer`` grids of range ``rng`` by layer."""
