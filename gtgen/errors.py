@@ -63,3 +63,7 @@ class LockedError(GtgenError, BlockingIOError):
 
 class OutputExistsError(GtgenError, FileExistsError):
     """An output path holds something gtgen did not write (pass --overwrite to replace it)."""
+
+
+class WorkerDiedError(GtgenError, RuntimeError):
+    """A worker process of a pool ended abruptly (killed by the system, say for memory)."""

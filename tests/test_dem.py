@@ -325,15 +325,16 @@ def test_a_shift_the_borders_miss_is_put_back_by_the_drives_track(dataset, drive
     assert sum(r["confusion"]["kept"].values()) == ref.n_samples, r
 
 
-def _write_tiles(folder, f, shifts=None, size=120, noise=0.03, seed=0):
-    """Write a 3 x 3 mosaic of ``size`` m tiles of the terrain f(E, N) (1 m pixels, EPSG:26910);
-    ``shifts``: {(col, row): (dx, dy, dz)} tiles that show at (E + dx, N + dy) the ground of
-    (E, N), dz higher (their files georeferenced off, as a TileOffset says)."""
+def _write_tiles(folder, f, shifts=None, size=120, noise=0.03, seed=0, n=3):
+    """Write an n x n mosaic (default 3 x 3) of ``size`` m tiles of the terrain f(E, N) (1 m
+    pixels, EPSG:26910); ``shifts``: {(col, row): (dx, dy, dz)} tiles that show at
+    (E + dx, N + dy) the ground of (E, N), dz higher (their files georeferenced off, as a
+    TileOffset says)."""
     folder.mkdir()
     rng = np.random.default_rng(seed)
     e0, n0 = 700_000.0, 3_940_000.0
-    for c in range(3):
-        for r in range(3):
+    for c in range(n):
+        for r in range(n):
             dx, dy, dz = (shifts or {}).get((c, r), (0.0, 0.0, 0.0))
             E = e0 + c * size + np.arange(size) + 0.5
             N = n0 + (r + 1) * size - np.arange(size) - 0.5  # rows run south
@@ -372,6 +373,21 @@ def test_border_fit_finds_a_tiles_offset_and_leaves_the_others_as_they_are(tmp_p
     got = _judge(tmp_path / "dem2", cfg.dem)
     assert got["t12"].status == "set_aside", got["t12"]
     assert all(j.status == "ok" for n, j in got.items() if n != "t12"), got
+
+
+@pytest.mark.parametrize("dz", [1.5, 6.0])
+def test_a_tile_read_too_high_is_put_back_not_its_neighbours(tmp_path, cfg, dz):
+    """The third campaign's case: in a 2 x 2 mosaic one tile reads ``dz`` too high (another
+    vertical datum). Its neighbours step on half their borders, so their steps spread more
+    than its own even ones: ordered by the spread, the neighbours were decided first and
+    put back metres sideways or set aside, the high tile left. Ordered by the absolute steps,
+    the high tile is put back by dz and the others stay as they are."""
+    _write_tiles(tmp_path / "dem", _hills, {(1, 0): (0.0, 0.0, dz)}, n=2)
+    got = _judge(tmp_path / "dem", cfg.dem)
+    c = got["t10"]
+    assert c.status == "corrected" and c.put_back is not None, c
+    np.testing.assert_allclose(c.applied, (0.0, 0.0, dz), atol=0.05)
+    assert all(j.status == "ok" for n, j in got.items() if n != "t10"), got
 
 
 def test_border_fit_on_smooth_terrain_reports_its_uncertainty(tmp_path, cfg):

@@ -147,3 +147,19 @@ def test_srtm_hgt_in_feet_and_a_local_crs(tmp_path):
     with pytest.raises(DemError, match="local CRS") as exc:
         TileIndex.build(local)
     assert "\n" not in str(exc.value)
+
+
+def test_a_tile_cut_short_is_named_in_one_line(drive_dir, drive_store, fused_store, cfg, tmp_path):
+    """A GeoTIFF whose header reads but whose pixels are cut short (a copy interrupted)
+    stopped dem-align with rasterio's 'Read failed. See previous exception for details.'
+    naming no file: now a DemError naming the tile."""
+    dem = tmp_path / "dem"
+    dem.mkdir()
+    tiles = sorted((drive_dir / "dem").glob("*.tif"))
+    for t in tiles:
+        (dem / t.name).write_bytes(t.read_bytes())
+    for t in sorted(dem.glob("*.tif")):  # every tile cut: whichever the drive reads first is named
+        t.write_bytes(t.read_bytes()[: t.stat().st_size // 3])
+    with pytest.raises(DemError, match=r"DEM tile '.*\.tif' cannot be read: the file is damaged or cut short"):
+        run_dem_align(drive_store, fused_store, dem, tmp_path / "out.zarr", cfg)
+    assert not (tmp_path / "out.zarr").exists()

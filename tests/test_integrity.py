@@ -20,7 +20,7 @@ from gtgen.errors import GtgenError, OutputExistsError, StoreError
 from gtgen.runtime.output import atomic_output, lock_path, owned, write_json
 from gtgen.storage.dataset import DatasetStore
 from gtgen.storage.drive import DriveStore
-from gtgen.storage.integrity import DamagedStoreError
+from gtgen.storage.integrity import DamagedStoreError, write_manifest
 from gtgen.storage.stores import verify_store
 
 
@@ -344,6 +344,61 @@ def test_an_output_over_an_input_or_a_gtgen_output_of_another_kind_is_refused(dr
     p = run_cli("viz", dataset, "-n", "1", "-o", tmp_path / "x.mcap", "--overwrite", cwd=tmp_path)
     assert p.returncode == 0 and (tmp_path / "x.mcap").read_bytes()[:4] == b"\x89PNG"
     assert png[:4] == b"\x89PNG"
+
+
+def test_an_output_holding_an_input_is_refused_even_with_overwrite(drive_dir, drive_store, fused_store, cfg, tmp_path):
+    """The third campaign's LOST class: '-o' a folder that holds the command's input (the
+    bag, the drive or fused store, the DEM folder) with --overwrite replaced the folder and
+    deleted the input. Refused before any work, the inputs as they were."""
+    from gtgen.dataset.dem_align import run_dem_align
+    from gtgen.extract import run_extract
+
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    bag = bags / "drive.mcap"
+    os.link(drive_dir / "drive.mcap", bag)
+    with pytest.raises(OutputExistsError, match="holds .*drive.mcap', an input of this command"):
+        run_extract([bag], bags, cfg, overwrite=True)
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "drive.zarr").symlink_to(drive_store)  # through a symlink too
+    with pytest.raises(OutputExistsError, match="an input of this command"):
+        run_dem_align(ws / "drive.zarr", fused_store, None, ws, cfg, overwrite=True)
+    dem = tmp_path / "dem"
+    shutil.copytree(drive_dir / "dem", dem)
+    tiles = sorted(dem.iterdir())
+    with pytest.raises(OutputExistsError, match="is an input of this command"):
+        run_dem_align(drive_store, fused_store, dem, dem, cfg, overwrite=True)
+    assert bag.is_file() and sorted(dem.iterdir()) == tiles and (ws / "drive.zarr").is_symlink()
+
+
+def test_a_fused_store_of_another_drive_is_refused(drive_store, fused_store, cfg, tmp_path):
+    """A fused store made from another drive store (a workspace whose drive was extracted
+    again, longer, without fusing again) was read as this drive's: an IndexError traceback,
+    or a dataset of wrong labels. Matched by the drive store's identity the fused store
+    records, or, in a store fused before that, by the bags and samples."""
+    from gtgen.dataset.dem_align import run_dem_align
+
+    def with_attrs(**change: object) -> Path:
+        fused = tmp_path / f"fused{len(list(tmp_path.iterdir()))}.zarr"
+        shutil.copytree(fused_store, fused)
+        meta = json.loads((fused / "zarr.json").read_text())
+        for k, v in change.items():
+            if v is None:
+                meta["attributes"].pop(k)
+            else:
+                meta["attributes"][k] = v
+        (fused / "zarr.json").write_text(json.dumps(meta))
+        shutil.rmtree(fused / "gtgen_manifest")
+        write_manifest(fused)  # a complete store of another drive, not a damaged one
+        return fused
+
+    for fused in (with_attrs(drive_identity="0123456789abcdef"),
+                  with_attrs(drive_identity=None, drive_bags=[{"path": "other.mcap", "sha256": "0" * 64}])):
+        with pytest.raises(StoreError, match="was fused from another drive store .* run 'gtgen fuse"):
+            run_dem_align(drive_store, fused, None, tmp_path / "out.zarr", cfg)
+        assert not (tmp_path / "out.zarr").exists()
+    assert json.loads((fused_store / "zarr.json").read_text())["attributes"]["drive_identity"] == DriveStore(drive_store).identity
 
 
 def test_export_geotiff_writes_into_a_folder_and_leaves_the_rest(dataset, tmp_path):

@@ -132,6 +132,69 @@ def test_pool_map_submit_and_errors(workers, monkeypatch):
     assert _threads() is None  # the parent's environment is restored
 
 
+def _die() -> None:
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_a_worker_killed_mid_job_is_one_clear_error():
+    """A worker the kernel kills (out of memory, say) ends the pool's block with
+    WorkerDiedError, a GtgenError the CLI prints on one line (it was a BrokenProcessPool
+    traceback)."""
+    from gtgen.errors import WorkerDiedError
+
+    with pytest.raises(WorkerDiedError, match="ended abruptly"):
+        with Pool(2) as pool:
+            pool.submit(_die).result()
+
+
+POOL_SCRIPT = """
+import os, sys, time
+from gtgen.runtime.pool import Pool
+
+def busy(x):
+    t = time.time()
+    while time.time() - t < 60:
+        pass
+
+if __name__ == "__main__":
+    with Pool(2) as pool:
+        futs = [pool.submit(busy, i) for i in range(4)]
+        print(" ".join(str(p.pid) for p in pool._ex._processes.values()), flush=True)
+        time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", "killed"])
+def test_stopping_the_parent_stops_the_workers_quietly(how, tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) stops the
+    workers without a traceback of theirs; a parent killed outright leaves no worker
+    behind (they used to wait for jobs forever)."""
+    script = tmp_path / "pool_script.py"
+    script.write_text(POOL_SCRIPT)
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, cwd=Path(__file__).resolve().parents[1])
+    pids = [int(x) for x in p.stdout.readline().split()]
+    assert len(pids) == 2
+    time.sleep(1.0)  # the workers are busy
+    os.killpg(p.pid, signal.SIGINT if how == "ctrl-c" else signal.SIGKILL) if how == "ctrl-c" else os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    err = p.stderr.read()
+    for _ in range(50):  # at most 10 s: the workers look for their parent every 2 s
+        if not any(os.path.exists(f"/proc/{pid}") and "Z" not in _state(pid) for pid in pids):
+            break
+        time.sleep(0.2)
+    assert not any(os.path.exists(f"/proc/{pid}") and "Z" not in _state(pid) for pid in pids)
+    if how == "ctrl-c":
+        assert "SpawnProcess" not in err and "leaked" not in err and err.count("Traceback") <= 1, err
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except OSError:
+        return "Z"
+
+
 # -- gtgen removes only what it wrote, whatever the name -------------------------------------
 
 def _users_lookalikes(out: Path) -> dict[Path, str]:

@@ -28,7 +28,7 @@ from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
 from gtgen.dem.run import Alignment, ChainWatch, Outcome, align_drive, unplaced
 from gtgen.dem.tiles import DemRef
-from gtgen.errors import ConfigError
+from gtgen.errors import ConfigError, StoreError
 from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.storage.dataset_writer import ShardWriter
@@ -65,8 +65,10 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     is kept with the fused labels alone.
     """
     drive, fused = DriveStore(drive_path), FusedStore(fused_path)
+    _check_same_drive(drive, fused)
     _check_grids(fused, cfg)
-    with stage_output(out, reads=[drive_path, fused_path], overwrite=overwrite) as tmp, Pool(workers) as pool:
+    reads = [drive_path, fused_path, *([dem_dir] if dem_dir is not None else [])]
+    with stage_output(out, reads=reads, overwrite=overwrite) as tmp, Pool(workers) as pool:
         build = _Build(drive, fused, tmp, cfg, pool)
         with _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json", build if stream else None) as al:
             if not stream:
@@ -97,6 +99,21 @@ def _aligned(drive: DriveStore, fused: FusedStore, dem_dir: Path | None, cfg: Gt
     with align_drive(drive, fused, dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags]), cfg, cache,
                      watch) as al:
         yield al
+
+
+def _check_same_drive(drive: DriveStore, fused: FusedStore) -> None:
+    """Refuse a fused store fused from another drive store than ``drive`` (its samples
+    are another drive's): by the drive store's identity it recorded, or, in a fused store
+    written before it recorded one, by the bags read and the samples."""
+    recorded = fused.attrs.get("drive_identity")
+    if recorded is not None:
+        same = recorded == drive.identity
+    else:
+        bags = sorted(b.get("sha256", "") for b in fused.attrs.get("drive_bags") or [])
+        same = bags == sorted(b.get("sha256", "") for b in drive.bags) and fused.n_samples == drive.n_samples
+    if not same:
+        raise StoreError(f"fused store '{fused.path}' was fused from another drive store than '{drive.path}' "
+                         f"(it names '{fused.attrs.get('drive')}'); run 'gtgen fuse {drive.path}' again")
 
 
 def _check_grids(fused: FusedStore, cfg: GtgenConfig) -> None:

@@ -67,10 +67,12 @@ def tiles_near(dem: DemSource, track_en: NDArray, reach_m: float) -> list[int]:
 def judge_borders(dem: DemSource, tiles: list[int], dc: DemConfig) -> dict[int, TileJudgement]:
     """Judge ``tiles`` by their borders with their neighbours (see the module). A wrong
     tile spoils its neighbours' borders too, so the decisions are taken one at a time: the
-    tile whose borders step most against its neighbours as read, summed along them, is set
-    aside or put back first (a tile wrong on all its sides before a neighbour wrong on the
-    one it shares with it), and its neighbours are judged again with that decision in
-    force, until every tile left is fine as it is."""
+    tile whose borders step most against its neighbours as read, summed along them (their
+    spread, or their median where larger: a tile read too high steps evenly, with little
+    spread, and its neighbours step on the side they share with it only), is set aside or
+    put back first (a tile wrong on all its sides before a neighbour wrong on the one it
+    shares with it), and its neighbours are judged again with that decision in force, until
+    every tile left is fine as it is."""
     aside: set[int] = set()
     back: dict[int, TileOffset] = {}
 
@@ -81,7 +83,7 @@ def judge_borders(dem: DemSource, tiles: list[int], dc: DemConfig) -> dict[int, 
     out = {i: judge(i) for i in tiles}
     decided: set[int] = set()
     while todo := [i for i, j in out.items() if j.status in ("set_aside", "corrected") and i not in decided]:
-        worst = max(todo, key=lambda i: out[i].border.step_m * out[i].border.pixels if out[i].border else np.inf)
+        worst = max(todo, key=lambda i: _wrongness(out[i].border))
         decided.add(worst)
         if out[worst].status == "set_aside":
             aside.add(worst)
@@ -91,6 +93,11 @@ def judge_borders(dem: DemSource, tiles: list[int], dc: DemConfig) -> dict[int, 
             if _touch(dem.tile_bounds(i), dem.tile_bounds(worst), dc.max_tile_offset_m):
                 out[i] = judge(i)
     return out
+
+
+def _wrongness(fit: BorderFit | None) -> float:
+    """How wrong a tile reads against its neighbours, summed along its borders [m x pixels]."""
+    return np.inf if fit is None else max(fit.step_m, abs(fit.dz_as_read_m)) * fit.pixels
 
 
 def _touch(a: tuple[float, float, float, float], b: tuple[float, float, float, float], gap_m: float) -> bool:

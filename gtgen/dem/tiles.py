@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from gtgen.dem.borders import MIN_SIDE_SHARE, BorderSide
 from gtgen.dem.index import TileIndex
+from gtgen.errors import DemError
 
 
 class DemSource(Protocol):
@@ -241,8 +242,6 @@ class DemMosaic:
 
     def read_direct(self, left: float, bottom: float, right: float, top: float) -> tuple[NDArray[np.float32], tuple[float, float, float]]:
         """:meth:`read` by merging the tiles over the box itself (pages are read so; the oracle)."""
-        from rasterio.merge import merge
-
         res = self.res
         x0, y0 = self._snap(left, top)
         w, h = int(np.ceil((right - x0) / res)), int(np.ceil((y0 - bottom) / res))
@@ -252,8 +251,7 @@ class DemMosaic:
                 if i not in self.exclude and b[0] < box[2] and b[2] > box[0] and b[1] < box[3] and b[3] > box[1]]
         plain = [i for i in hits if i not in self.offsets]
         for scale in sorted({self.index.tiles[i].z_to_m for i in plain}):
-            group = [self._dataset(i)[0] for i in plain if self.index.tiles[i].z_to_m == scale]
-            data, _ = merge(group, bounds=box, res=res, nodata=np.nan, dtype="float32")
+            data = self._merge([i for i in plain if self.index.tiles[i].z_to_m == scale], box)
             grid = data[0, :h, :w].astype(np.float32) * np.float32(scale)
             np.copyto(out, grid, where=np.isnan(out))
         for i in hits:
@@ -261,6 +259,19 @@ class DemMosaic:
                 np.copyto(out, self._read_put_back(i, box, h, w), where=np.isnan(out))
         out[out < -1e4] = np.nan  # nodata spelled as a huge negative number without a nodata tag
         return out, (float(x0), float(y0), float(res))
+
+    def _merge(self, tiles: list[int], box: tuple[float, float, float, float]) -> NDArray:
+        """Return ``rasterio.merge.merge`` of ``tiles`` over ``box`` on the lattice (bands,
+        rows, columns; NaN where none); DemError naming the tile whose file cannot be read."""
+        from rasterio.errors import RasterioError
+        from rasterio.merge import merge
+
+        try:
+            return merge([self._dataset(i)[0] for i in tiles], bounds=box, res=self.res, nodata=np.nan, dtype="float32")[0]
+        except RasterioError as err:
+            bad = next((i for i in tiles if not _reads(self._dataset(i)[0], box)), tiles[0])
+            raise DemError(f"DEM tile '{self.index.tiles[bad].path}' cannot be read: the file is damaged or cut short; "
+                           "replace it, or move it out of the DEM folder") from err
 
     def border_sides(self, i: int, max_gap_m: float, without: frozenset[int] = frozenset(),
                      offsets: dict[int, TileOffset] | None = None) -> list[BorderSide]:
@@ -301,18 +312,28 @@ class DemMosaic:
     def _read_put_back(self, i: int, box: tuple[float, float, float, float], h: int, w: int) -> NDArray[np.float32]:
         """Return tile ``i`` put back on the (h, w) pixels of ``box``: its content at the
         pixel centres moved by the offset, bilinear, less dz (NaN off the tile)."""
-        from rasterio.merge import merge
-
         o, res = self.offsets[i], self.res
         l, b, r, t = _put_back_box(box, o, res)
         sx, sy = self._snap(l, t)
         sw, sh = int(np.ceil((r - sx) / res)), int(np.ceil((sy - b) / res))
-        data, _ = merge([self._dataset(i)[0]], bounds=(sx, sy - sh * res, sx + sw * res, sy), res=res, nodata=np.nan, dtype="float32")
+        data = self._merge([i], (sx, sy - sh * res, sx + sw * res, sy))
         grid = data[0, :sh, :sw].astype(np.float32) * np.float32(self.index.tiles[i].z_to_m)
         grid[grid < -1e4] = np.nan
         E = box[0] + (np.arange(w) + 0.5) * res + o.dx
         N = box[3] - (np.arange(h) + 0.5) * res + o.dy
         return sample_bilinear(grid, (sx, sy, res), E[None, :], N[:, None]) - np.float32(o.dz)
+
+
+def _reads(ds: Any, box: tuple[float, float, float, float]) -> bool:
+    """Whether dataset ``ds`` reads over ``box`` (to tell which tile of a failed merge is damaged)."""
+    from rasterio.errors import RasterioError
+    from rasterio.windows import from_bounds
+
+    try:
+        ds.read(1, window=from_bounds(*box, transform=ds.transform), boundless=False)
+        return True
+    except (RasterioError, ValueError):
+        return False
 
 
 def _put_back_box(box: tuple[float, float, float, float], o: TileOffset, res: float) -> tuple[float, float, float, float]:

@@ -66,7 +66,7 @@ def run_extract(paths: list[Path], out: Path, cfg: GtgenConfig, workers: int = 2
     """
     if bag_sha256 is not None and len(bag_sha256) != len(paths):
         raise ValueError(f"{len(bag_sha256)} bag hashes given for {len(paths)} bags")
-    with stage_output(out, overwrite=overwrite) as tmp, Pool(workers, warm=import_readers) as pool, \
+    with stage_output(out, reads=paths, overwrite=overwrite) as tmp, Pool(workers, warm=import_readers) as pool, \
             ThreadPoolExecutor(max_workers=1) as hasher:  # hashing releases the GIL: it overlaps the read
         roles, bounds, frames, lidar = _open(paths, cfg, workers, n_slices)
         hashes = [hasher.submit(hash_bag, p) for p in paths] if bag_sha256 is None else []

@@ -101,6 +101,7 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2, ov
         writer.create_grids(S, {r: cfg.grids.get(r).size for r in RANGES})
         result = _summarise(out, S, _fuse_all(drive, tmp, cfg, S, workers))
         writer.finish(result.reason, gtgen_version=__version__, drive=str(drive_path.resolve()), drive_bags=drive.bags,
+                      drive_identity=drive.identity,
                       config=cfg.model_dump(mode="json"), coverage=result.coverage, rejected=result.rejected)
     return result
 

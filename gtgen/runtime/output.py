@@ -167,6 +167,20 @@ def output_kind(path: Path) -> str:
     return "file"
 
 
+def check_not_over_inputs(path: Path, reads: Sequence[Path]) -> None:
+    """Raise OutputExistsError if the output ``path`` is one of the command's inputs
+    ``reads`` or a folder holding one (through symlinks too): replacing it would delete
+    the input, so ``--overwrite`` does not lift this."""
+    outs = {Path(os.path.abspath(path)), Path(path).resolve()}
+    for p in reads:
+        inps = {Path(os.path.abspath(p)), Path(p).resolve()}  # the input as named (a link) and what it is
+        if outs & inps:
+            raise OutputExistsError(f"output '{path}' is an input of this command; choose another output")
+        if any(out in inp.parents for out in outs for inp in inps):
+            raise OutputExistsError(f"output '{path}' holds '{p}', an input of this command, which replacing the output "
+                                    "would delete (--overwrite too); choose another output")
+
+
 def check_same_kind(path: Path, new: Path, overwrite: bool = False) -> None:
     """Raise OutputExistsError if ``path`` holds a gtgen output of another kind than the
     one written at ``new`` (unless ``overwrite``): a command's output over a checkpoint, a
@@ -434,9 +448,7 @@ def stage_output(path: Path, reads: Sequence[Path] = (), overwrite: bool = False
     shared lock on each input in ``reads``; the output appears only when the block succeeds
     (see ``atomic_output`` for what it may replace; ``file``: the output is a file)."""
     check_replace(path, overwrite, file)  # before any work
-    for p in reads:
-        if Path(p).resolve() == Path(path).resolve():
-            raise OutputExistsError(f"output '{path}' is an input of this command; choose another output")
+    check_not_over_inputs(path, reads)
     with contextlib.ExitStack() as stack:
         stack.enter_context(lock(path))
         for p in reads:

@@ -14,9 +14,32 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from typing import Any
 
+from gtgen.errors import WorkerDiedError
 from gtgen.runtime.progress import track
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
+ORPHAN_CHECK_S = 2.0  # how often a worker looks whether the process that started it still lives
+
+
+def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> None:
+    """Set up a worker: Ctrl-C is the parent's to handle (it stops the workers; a worker
+    of its own would print a traceback for it), the worker ends when the parent is gone
+    (killed, say: it would otherwise wait for jobs forever), then ``init(*args)``."""
+    import signal
+    import threading
+    import time
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(ORPHAN_CHECK_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="gtgen-orphan-watch").start()
+    if init is not None:
+        init(*args)
 
 
 class Pool:
@@ -40,6 +63,13 @@ class Pool:
             init[0](*init[1])
         if self.workers > 1:
             import multiprocessing as mp
+            import sys
+
+            # workers stopped mid-job (``close(stop=True)``) may hold a lock of the job queue,
+            # which the resource tracker then frees with a warning that means nothing here
+            # (the tracker, started with the first pool, takes this process's warning options)
+            if _QUIET_TRACKER not in sys.warnoptions:
+                sys.warnoptions.append(_QUIET_TRACKER)
             from concurrent.futures import ProcessPoolExecutor
 
             # workers spawn on demand: the variables stay set while the pool lives
@@ -47,7 +77,8 @@ class Pool:
             for k in THREAD_VARS:
                 os.environ.setdefault(k, "1")
             fn, args = init if init is not None else (None, ())
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"), initializer=fn, initargs=args)
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
+                                           initializer=_start_worker, initargs=(os.getpid(), fn, args))
             if warm is not None:
                 for _ in range(self.workers):
                     self._ex.submit(warm)
@@ -100,9 +131,13 @@ class Pool:
             results = (f.result() for f in as_completed(futs))
         return results if label is None else track(results, label, total=len(jobs))
 
-    def close(self) -> None:
-        """Stop the workers (waiting for running jobs, cancelling queued ones)."""
+    def close(self, stop: bool = False) -> None:
+        """Stop the workers: waiting for running jobs and cancelling queued ones, or with
+        ``stop`` (the caller failed or was interrupted) ending the running ones too."""
         if self._ex is not None:
+            if stop:  # no public way before Python 3.14
+                for p in list((getattr(self._ex, "_processes", None) or {}).values()):
+                    p.terminate()
             self._ex.shutdown(wait=True, cancel_futures=True)
             self._ex = None
             for k, v in self._env.items():
@@ -112,8 +147,14 @@ class Pool:
     def __enter__(self) -> Pool:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type | None, exc: BaseException | None, tb: object) -> None:
+        from concurrent.futures.process import BrokenProcessPool
+
+        self.close(stop=exc is not None)
+        if isinstance(exc, BrokenProcessPool):  # Python tells no more than that a worker is gone
+            raise WorkerDiedError(f"a worker process of {self.workers} ended abruptly (killed by the system: out of memory, "
+                                  "or a signal; or its set-up failed, printed above), so the output was not completed; run "
+                                  "the command again, with fewer workers or smaller sizes if memory is short") from exc
 
 
 class BackgroundWrites:
