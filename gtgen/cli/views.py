@@ -172,18 +172,22 @@ def verify(
     rows += [("problem", p) for p in v.problems[:20]]
     if len(v.problems) > 20:
         rows.append(("", f"... and {len(v.problems) - 20} more"))
-    rows += [("not written by gtgen", f) for f in v.extra[:20]]
-    if len(v.extra) > 20:
-        rows.append(("", f"... and {len(v.extra) - 20} more"))
-    files = f"{len(v.extra)} file{'s' if len(v.extra) > 1 else ''}"
-    verdict = f"DAMAGED ({len(v.problems)} problems)" if v.problems else "whole" + (f", with {files} gtgen did not write" if v.extra else "")
+    strays = v.strays + v.extra  # gtgen did not write them: chunk-named ones first (zarr reads those)
+    rows += [("not written by gtgen", f) for f in strays[:20]]
+    if len(strays) > 20:
+        rows.append(("", f"... and {len(strays) - 20} more"))
+    files = f"{len(strays)} file{'s' if len(strays) > 1 else ''}"
+    verdict = (f"DAMAGED ({len(v.problems)} problems)" if v.problems else
+               f"holds {files} gtgen did not write, {len(v.strays)} named as chunks" if v.strays else
+               "whole" + (f", with {files} gtgen did not write" if v.extra else ""))
     rows.append(("verdict", verdict))
     table("gtgen verify", rows)
     if v.problems:
         more = f" (and {len(v.problems) - 1} more)" if len(v.problems) > 1 else ""
         raise GtgenError(f"store '{store}' is damaged: {v.problems[0]}{more}; rebuild it with '{fmt.made_by}'")
-    if v.extra:
-        more = f" (and {len(v.extra) - 1} more)" if len(v.extra) > 1 else ""
-        them = "them" if len(v.extra) > 1 else "it"
-        raise GtgenError(f"store '{store}' holds {files} gtgen did not write: '{v.extra[0]}'{more}; its data is whole: "
-                         f"removing {them} is enough (nothing to rebuild)")
+    if strays:
+        more = f" (and {len(strays) - 1} more)" if len(strays) > 1 else ""
+        them = "them" if len(strays) > 1 else "it"
+        read = ("named as a chunk, which zarr would read as data; the data gtgen wrote is there: removing "
+                f"{them} is enough (then verify again)") if v.strays else f"its data is whole: removing {them} is enough (nothing to rebuild)"
+        raise GtgenError(f"store '{store}' holds {files} gtgen did not write: '{strays[0]}'{more}, {read}")

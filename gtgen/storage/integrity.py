@@ -38,7 +38,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -223,7 +223,7 @@ class Manifest:
         want = self.files.get(key)
         if want is None:
             if data is not None and key.rsplit("/", 1)[-1] != METADATA and not key.startswith(MANIFEST + "/"):
-                raise self.damaged_chunk(key, "holds a chunk file that was not written with the store")
+                raise self.damaged_chunk(key, "was not written with the store (removing the file is enough)")
             return
         if data is None:
             raise self.damaged_chunk(key, "is missing")
@@ -323,11 +323,14 @@ class Manifest:
 class Verdict:
     """What ``verify`` found: ``problems`` (damage: the data is not as written), ``extra``
     (files the store was not written with that zarr never reads: removing them is enough),
-    and the files checked."""
+    the files checked, and ``strays`` (files the store was not written with, named as a
+    chunk of one of its arrays: zarr would read them as data, gtgen refuses them; removing
+    them is enough too)."""
 
     problems: list[str]
     extra: list[str]
     checked: int
+    strays: list[str] = field(default_factory=list)
 
 
 def verify(root: Path, where: Where) -> Verdict:
@@ -346,15 +349,15 @@ def verify(root: Path, where: Where) -> Verdict:
             m.check(key, (root / key).read_bytes() if key in on_disk else None)
         except DamagedStoreError as err:
             problems.append(err.what)
-    extra = []
+    extra, strays = [], []
     for key in sorted(set(on_disk) - set(m.files) - set(m.metadata)):
         if _arrays_of(key) and f"{_arrays_of(key)[0]}/{METADATA}" in m.metadata:  # in an array's chunk keys: zarr reads it as data
-            problems.append(m.damaged_chunk(key, "was not written with the store").what)
+            strays.append(key)
         else:
             extra.append(key)
-    if not problems:
+    if not problems and not strays:  # zarr would decode the strays too: first they go
         problems += _decode_all(root, m)
-    return Verdict(problems, extra, len(m.files) + len(m.metadata))
+    return Verdict(problems, extra, len(m.files) + len(m.metadata), strays)
 
 
 def _decode_all(root: Path, m: Manifest) -> list[str]:
