@@ -156,6 +156,8 @@ def dem_align(
     dem: Optional[Path] = typer.Option(None, "--dem", help="DEM folder [default: dem.dir, else dem/ beside the bag]"),
     no_dem: bool = typer.Option(False, "--no-dem", help="no DEM (dem.enabled: false): the fused labels alone, unobserved cells unlabelled"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="dataset to write [default: dataset.zarr beside DRIVE]"),
+    workers: int = typer.Option(2, min=1, max=MAX_WORKERS, help="processes building the samples (the ICP chain runs beside them); "
+                                "the dataset is the same for any number"),
     overwrite: bool = OverwriteOpt,
     config: Optional[Path] = ConfigOpt,
 ) -> None:
@@ -176,7 +178,7 @@ def dem_align(
     from gtgen.dataset.dem_align import run_dem_align
 
     res = run_dem_align(drive, fused or drive.parent / "fused.zarr", dem, out or drive.parent / "dataset.zarr", cfg,
-                        overwrite=overwrite)
+                        workers=workers, overwrite=overwrite)
     import numpy as np
 
     f = np.asarray(res.fitness) if res.fitness else None
