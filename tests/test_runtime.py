@@ -176,7 +176,7 @@ def test_stopping_the_parent_stops_the_workers_quietly(how, tmp_path):
     pids = [int(x) for x in p.stdout.readline().split()]
     assert len(pids) == 2
     time.sleep(1.0)  # the workers are busy
-    os.killpg(p.pid, signal.SIGINT if how == "ctrl-c" else signal.SIGKILL) if how == "ctrl-c" else os.kill(p.pid, signal.SIGKILL)
+    os.killpg(p.pid, signal.SIGINT) if how == "ctrl-c" else os.kill(p.pid, signal.SIGKILL)
     p.wait(timeout=30)
     err = p.stderr.read()
     for _ in range(50):  # at most 10 s: the workers look for their parent every 2 s

@@ -26,7 +26,7 @@ from gtgen.dem.fit import PlanarFit
 from gtgen.dem.index import default_dem_dir
 from gtgen.dem.judge import TileJudgement
 from gtgen.dem.place import Placement
-from gtgen.dem.run import Alignment, ChainWatch, Outcome, align_drive, unplaced
+from gtgen.dem.run import Alignment, ChainWatch, Outcome, align_drive, replay, unplaced
 from gtgen.dem.tiles import DemRef
 from gtgen.errors import ConfigError, StoreError
 from gtgen.runtime.output import stage_output
@@ -67,14 +67,13 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     drive, fused = DriveStore(drive_path), FusedStore(fused_path)
     _check_same_drive(drive, fused)
     _check_grids(fused, cfg)
-    reads = [drive_path, fused_path, *([dem_dir] if dem_dir is not None else [])]
+    dem_src = _dem_source(drive, dem_dir, cfg)
+    reads = [drive_path, fused_path, *([dem_src] if dem_src is not None else [])]  # the default DEM folder too
     with stage_output(out, reads=reads, overwrite=overwrite) as tmp, Pool(workers) as pool:
         build = _Build(drive, fused, tmp, cfg, pool)
-        with _aligned(drive, fused, dem_dir, cfg, out.parent / "dem-index.json", build if stream else None) as al:
+        with _aligned(drive, fused, dem_src, cfg, out.parent / "dem-index.json", build if stream else None) as al:
             if not stream:
-                build.start(al.dem)
-                for o in al.outcomes:
-                    build.outcome(o)
+                replay(build, al.dem, al.outcomes)
             writer = build.finish()
             entry = drive_entry(drive_path, drive, al)
         n = writer.close(dataset_attrs(cfg, [entry], drive.image_size, drive.cameras))
@@ -86,18 +85,25 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
                        splits)
 
 
-@contextlib.contextmanager
-def _aligned(drive: DriveStore, fused: FusedStore, dem_dir: Path | None, cfg: GtgenConfig, cache: Path,
-             watch: ChainWatch | None) -> Iterator[Alignment]:
-    """Yield the drive's alignment to its DEM (``dem_dir``, else the configured or default
-    one), or its unplaced outcomes when ``dem.enabled`` is false; ``watch`` follows it."""
+def _dem_source(drive: DriveStore, dem_dir: Path | None, cfg: GtgenConfig) -> Path | None:
+    """Return the DEM the drive is aligned to: ``dem_dir``, else the configured or default
+    one; None when ``dem.enabled`` is false."""
     if not cfg.dem.enabled:
         if dem_dir is not None:
             raise ConfigError(f"--dem {dem_dir} given with --no-dem (dem.enabled: false); expected one of them")
+        return None
+    return dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags])
+
+
+@contextlib.contextmanager
+def _aligned(drive: DriveStore, fused: FusedStore, dem_src: Path | None, cfg: GtgenConfig, cache: Path,
+             watch: ChainWatch | None) -> Iterator[Alignment]:
+    """Yield the drive's alignment to the DEM ``dem_src``, or its unplaced outcomes without
+    one (``dem.enabled`` false); ``watch`` follows it."""
+    if dem_src is None:
         yield unplaced(drive, fused, watch)
         return
-    with align_drive(drive, fused, dem_dir or default_dem_dir(cfg.dem.dir, [Path(b["path"]) for b in drive.bags]), cfg, cache,
-                     watch) as al:
+    with align_drive(drive, fused, dem_src, cfg, cache, watch) as al:
         yield al
 
 

@@ -137,10 +137,15 @@ def unplaced(drive: DriveStore, fused: FusedStore, watch: ChainWatch | None = No
     out = [Outcome(k, int(s.t_ns[k]), s.pos_odom_m[k], float(s.yaw_odom_rad[k]),
                    Placement(codes.OK, signals=none) if reason_f[k] == codes.OK else int(reason_f[k])) for k in range(len(s))]
     if watch is not None:
-        watch.start(None)
-        for o in out:
-            watch.outcome(o)
+        replay(watch, None, out)
     return Alignment(None, out, frozenset(), [], None, [])
+
+
+def replay(watch: ChainWatch, dem: DemRef | None, outcomes: list[Outcome]) -> None:
+    """Hand ``watch`` a whole pass of ``outcomes`` (reading ``dem``), as a chain run with it would."""
+    watch.start(dem)
+    for o in outcomes:
+        watch.outcome(o)
 
 
 def _near(placement: DrivePlacement, drive: DriveStore, cfg: GtgenConfig) -> list[int]:
