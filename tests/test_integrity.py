@@ -374,7 +374,13 @@ def test_an_output_holding_an_input_is_refused_even_with_overwrite(drive_dir, dr
     tiles = sorted(dem.iterdir())
     with pytest.raises(OutputExistsError, match="is an input of this command"):
         run_dem_align(drive_store, fused_store, dem, dem, cfg, overwrite=True)
+    mine = tmp_path / "mine"  # the DEM folder the config names (no --dem): an input all the same
+    shutil.copytree(dem, mine / "dem")
+    configured = cfg.model_copy(update={"dem": cfg.dem.model_copy(update={"dir": str(mine / "dem")})})
+    with pytest.raises(OutputExistsError, match="holds .*dem', an input of this command"):
+        run_dem_align(drive_store, fused_store, None, mine, configured, overwrite=True)
     assert bag.is_file() and sorted(dem.iterdir()) == tiles and (ws / "drive.zarr").is_symlink()
+    assert sorted(p.name for p in (mine / "dem").iterdir()) == [t.name for t in tiles]
 
 
 def test_a_fused_store_of_another_drive_is_refused(drive_store, fused_store, cfg, tmp_path):
