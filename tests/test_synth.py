@@ -380,3 +380,29 @@ def test_the_stacks_registration_drifts_over_its_memory_and_the_easy_world_has_n
     assert lag1 > 0.9 and abs(lag_mem) < 0.1  # consecutive maps share it; a memory apart, they do not
     assert np.array_equal(d, stack_drift(sc, 20000))  # seeded
     assert stack_drift(SynthConfig(world="easy"), 100) is None
+
+
+def test_a_worker_draws_each_lidar_view_once_and_the_maps_as_drawn_afresh(monkeypatch):
+    """A worker of two ticks every other map; the memory's lattice views its maps share are
+    drawn once (they were drawn again for almost every map), and the maps are those of a
+    ticker that draws every view afresh (the oracle)."""
+    from gtgen.synth import run as synth_run
+    from gtgen.synth import sensors
+
+    cfg = small_config(synth={"world": "paper", "duration_s": 8.0, "scan_rate_hz": 0})
+    world = synth_run.SynthWorld(cfg.synth)
+    worker, fresh = synth_run._Ticker(cfg, world, None, "mcap"), synth_run._Ticker(cfg, world, None, "mcap")
+    drawn: list[tuple] = []
+    real = sensors.lidar_view
+    monkeypatch.setattr(sensors, "lidar_view", lambda sc, t, origin: drawn.append(tuple(origin)) or real(sc, t, origin))
+    ticks = range(0, worker.n, 2 * worker.map_p)
+    mine = []
+    for k in ticks:
+        worker._maps(mine, k, worker._view(k))
+    assert len(drawn) == len(set(drawn)) and len(drawn) <= len(ticks) + len(range(0, worker.n, worker._memory_step()))
+    assert worker._memory_step() > 0 and any(len(worker._memory_ticks(k, 1.0)) > 1 for k in ticks)
+    for k, i in zip(ticks, range(0, len(mine), 2)):
+        fresh._views.clear(), fresh._lattice.clear()
+        theirs: list = []
+        fresh._maps(theirs, k, fresh._view(k))
+        assert theirs == mine[i:i + 2]

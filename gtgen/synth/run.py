@@ -186,7 +186,8 @@ class _Ticker:
         dt = 1.0 / sc.odom_rate_hz
         self.vel_odom = np.gradient(world.odom.p_odom, dt, axis=0)
         self.yaw_rate = np.gradient(np.unwrap(ro[:, 2]), dt)
-        self._views: dict[int, sensors.LidarView] = {}  # the last few lidar views, by tick
+        self._views: dict[int, sensors.LidarView] = {}  # the last two lidar views, by tick
+        self._lattice: dict[int, sensors.LidarView] = {}  # the views of the memory's lattice ticks still within its span
         self.drift = stack_drift(sc, -(-self.n // self.map_p))
 
     def _msg(self, out: list, topic: str | None, msgtype: str, t_rec: int, build) -> None:
@@ -206,13 +207,32 @@ class _Ticker:
         return out
 
     def _view(self, k: int) -> sensors.LidarView:
-        view = self._views.get(k)
+        """Return the lidar view at tick ``k`` (a pure function of the tick). The views of the
+        memory's lattice ticks are kept while a later map can still ask for them (a map asks
+        for up to ``stack_memory_views - 1`` of them, most of them asked for by earlier maps
+        too); of the others, the last two."""
+        lattice = self._memory_step()
+        cache = self._lattice if lattice and k % lattice == 0 else self._views
+        view = cache.get(k)
         if view is None:
             origin = self.world.poses.pos[k] + np.array([0.0, 0.0, self.cfg.synth.lidar_height_m])
-            view = self._views[k] = sensors.lidar_view(self.cfg.synth, self.world.terrain, origin)
-            while len(self._views) > 2 * self.cfg.synth.stack_memory_views + 2:
-                del self._views[min(self._views)]
+            view = cache[k] = sensors.lidar_view(self.cfg.synth, self.world.terrain, origin)
+            if cache is self._views:
+                while len(self._views) > 2:
+                    del self._views[min(self._views)]
+            else:  # older than the memory's longest span before the newest asked for: no map asks again
+                span = int(np.ceil(self.cfg.synth.stack_memory_s * self.cfg.synth.odom_rate_hz)) + lattice
+                for j in [j for j in self._lattice if j < max(self._lattice) - span]:
+                    del self._lattice[j]
         return view
+
+    def _memory_step(self) -> int:
+        """Return the ticks between the memory's lattice ticks (0: the maps hold no memory)."""
+        sc = self.cfg.synth
+        n = sc.stack_memory_views - 1
+        if sc.confidence_model != "density" or n < 1:
+            return 0
+        return max(1, int(round(sc.stack_memory_s * sc.odom_rate_hz / (n + 1) / self.map_p))) * self.map_p
 
     def _memory_ticks(self, k: int, speed: float) -> list[int]:
         """Return the ticks of the earlier poses of the stack's memory at tick ``k``: at most
@@ -220,10 +240,9 @@ class _Ticker:
         many over ``stack_memory_s`` (so consecutive maps share them), within the memory's
         span at ``speed``."""
         sc = self.cfg.synth
-        n = sc.stack_memory_views - 1
-        if sc.confidence_model != "density" or n < 1:
+        n, step = sc.stack_memory_views - 1, self._memory_step()  # [ticks]
+        if step == 0:
             return []
-        step = max(1, int(round(sc.stack_memory_s * sc.odom_rate_hz / (n + 1) / self.map_p))) * self.map_p  # [ticks]
         span = sensors.stack_memory_s(sc, speed) * sc.odom_rate_hz  # [ticks]
         last = (k - 1) // step * step  # the lattice tick before k
         ks = [last - i * step for i in range(n)]
