@@ -90,8 +90,16 @@ def _bilinear_outer(g: NDArray, rows: NDArray[np.float64], cols: NDArray[np.floa
     r0, r1, a = _axis_taps(rows, g.shape[-2])
     c0, c1, b = _axis_taps(cols, g.shape[-1])
     a, b = a.astype(g.dtype), b.astype(g.dtype)
-    t = g[..., r0, :] * (1.0 - a)[:, None] + g[..., r1, :] * a[:, None]
-    return t[..., c0] * (1.0 - b) + t[..., c1] * b
+    # the same products and sums as t[r0] (1 - a) + t[r1] a, then along the columns, in
+    # place: the temporaries of the fine grid were most of its time
+    t = g[..., r0, :] * (1.0 - a)[:, None]
+    t += g[..., r1, :] * a[:, None]
+    out = np.take(t, c0, axis=-1)
+    out *= 1.0 - b
+    hi = np.take(t, c1, axis=-1)
+    hi *= b
+    out += hi
+    return out
 
 
 def resample_bilinear(grids: NDArray, size: int) -> NDArray[np.float32]:
