@@ -147,6 +147,33 @@ def test_a_worker_killed_mid_job_is_one_clear_error():
             pool.submit(_die).result()
 
 
+def _sigint_held(pid: int) -> bool | None:
+    """Whether process ``pid`` blocks or ignores SIGINT (None when it is gone)."""
+    try:
+        fields = dict(line.split(":\t", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":\t" in line)
+    except OSError:
+        return None
+    bit = 1 << (signal.SIGINT - 1)
+    return bool((int(fields["SigBlk"], 16) | int(fields["SigIgn"], 16)) & bit)
+
+
+def test_a_worker_holds_off_ctrl_c_from_its_first_instruction():
+    """A worker's interpreter boots for a second or more on a busy machine before its
+    set-up ignores SIGINT; a Ctrl-C in that window ended it half-way with a traceback and
+    broke the pool the parent was stopping (a run of the suite hung 30 s on it). Polled
+    from its spawn until it runs a job, a worker blocks or ignores SIGINT at every look."""
+    with Pool(2) as pool:
+        futs = [pool.submit(time.sleep, 0.3) for _ in range(2)]
+        pids = [p.pid for p in pool._ex._processes.values()]
+        looks = 0
+        while not all(f.done() for f in futs):
+            for pid in pids:
+                held = _sigint_held(pid)
+                assert held is not False, f"worker {pid} would be ended by a Ctrl-C (look {looks})"
+            looks += 1
+        assert looks > 10 and all(_sigint_held(pid) for pid in pids)
+
+
 POOL_SCRIPT = """
 import os, sys, time
 from gtgen.runtime.pool import Pool

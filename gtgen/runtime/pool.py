@@ -9,7 +9,9 @@ only contend.
 
 from __future__ import annotations
 
+import multiprocessing.context as mpc
 import os
+import signal
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from typing import Any
@@ -25,12 +27,14 @@ ORPHAN_CHECK_S = 2.0  # how often a worker looks whether the process that starte
 def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> None:
     """Set up a worker: Ctrl-C is the parent's to handle (it stops the workers; a worker
     of its own would print a traceback for it), the worker ends when the parent is gone
-    (killed, say: it would otherwise wait for jobs forever), then ``init(*args)``."""
-    import signal
+    (killed, say: it would otherwise wait for jobs forever), then ``init(*args)``. The
+    worker was started with SIGINT blocked (``_QuietSpawnProcess``): it is ignored before
+    it is unblocked, so a Ctrl-C during start-up is dropped here too."""
     import threading
     import time
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -40,6 +44,26 @@ def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> 
     threading.Thread(target=watch, daemon=True, name="gtgen-orphan-watch").start()
     if init is not None:
         init(*args)
+
+
+class _QuietSpawnProcess(mpc.SpawnProcess):
+    """A spawned worker that starts with SIGINT blocked: a Ctrl-C that reaches a worker
+    while it starts (its interpreter boots for a second or more on a busy machine, before
+    ``_start_worker`` can ignore the signal) would end it half-way, print its traceback
+    and break the pool the parent is stopping. The mask is the spawning thread's,
+    inherited through fork and exec; this process's own Ctrl-C stays pending for those
+    few milliseconds and is delivered when the mask is restored, never lost."""
+
+    def start(self) -> None:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            super().start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+class _QuietSpawnContext(mpc.SpawnContext):
+    Process = _QuietSpawnProcess
 
 
 class Pool:
@@ -62,7 +86,6 @@ class Pool:
         if self.workers == 1 and init is not None:
             init[0](*init[1])
         if self.workers > 1:
-            import multiprocessing as mp
             import sys
 
             # workers stopped mid-job (``close(stop=True)``) may hold a lock of the job queue,
@@ -77,7 +100,7 @@ class Pool:
             for k in THREAD_VARS:
                 os.environ.setdefault(k, "1")
             fn, args = init if init is not None else (None, ())
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=_QuietSpawnContext(),
                                            initializer=_start_worker, initargs=(os.getpid(), fn, args))
             if warm is not None:
                 for _ in range(self.workers):
