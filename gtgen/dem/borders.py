@@ -126,12 +126,24 @@ def _smooth(v: NDArray) -> NDArray:
     return np.where(ok, num / np.maximum(den, 1e-9), np.nan)
 
 
+def nanmedian_rows(a: NDArray) -> NDArray:
+    """Return ``np.nanmedian(a, axis=1)`` of a 2-D array, the same numbers, by one sort: NumPy
+    takes a row of 600 or more values with a NaN one at a time in Python (36 us a row, 85 %
+    of judging a tile's borders). NaN sorts last; the median is the mean of the middle two
+    of a row's n values (the same one twice when n is odd); a row of NaN gives NaN."""
+    s = np.sort(a, axis=1)
+    n = a.shape[1] - np.isnan(a).sum(axis=1)
+    lo = np.take_along_axis(s, np.maximum(n - 1, 0)[:, None] // 2, axis=1)[:, 0]
+    hi = np.take_along_axis(s, (n // 2)[:, None], axis=1)[:, 0] if a.shape[1] else lo
+    return np.where(n > 0, (lo + hi) / 2, np.nan)
+
+
 def _spread(steps: tuple[NDArray, NDArray]) -> tuple[NDArray, NDArray]:
     """Return per row the median absolute deviation of the scaled steps about their median
     [m], and the median step [m]."""
     st, scale = steps
     scaled = st * scale
-    return np.nanmedian(np.abs(scaled - np.nanmedian(scaled, axis=1)[:, None]), axis=1), np.nanmedian(st, axis=1)
+    return nanmedian_rows(np.abs(scaled - nanmedian_rows(scaled)[:, None])), nanmedian_rows(st)
 
 
 def _scan(sides: list[BorderSide], xs: NDArray, ys: NDArray) -> NDArray:
