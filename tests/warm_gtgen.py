@@ -25,9 +25,10 @@ import threading
 import time
 from pathlib import Path
 
-# what the commands import inside their bodies (gtgen.cli keeps --help instant)
-PRELOAD = ("gtgen.cli", "numpy", "scipy.ndimage", "zarr", "torch", "open3d", "rasterio", "pyproj", "rich.console",
-           "gtgen.synth", "gtgen.extract", "gtgen.fuse.run", "gtgen.dataset.dem_align", "gtgen.train.trainer")
+# what the commands import inside their bodies (gtgen.cli keeps --help instant); torch's
+# optimizers import torch._dynamo when the first is made (1.2-1.6 s a training command)
+PRELOAD = ("gtgen.cli", "numpy", "scipy.ndimage", "zarr", "torch", "torch._dynamo", "open3d", "rasterio", "pyproj",
+           "rich.console", "gtgen.synth", "gtgen.extract", "gtgen.fuse.run", "gtgen.dataset.dem_align", "gtgen.train.trainer")
 
 
 def _read(stream) -> object | None:
