@@ -142,9 +142,35 @@ def test_a_worker_killed_mid_job_is_one_clear_error():
     traceback)."""
     from gtgen.errors import WorkerDiedError
 
-    with pytest.raises(WorkerDiedError, match="ended abruptly"):
+    with pytest.raises(WorkerDiedError, match="ended abruptly \\(signal SIGKILL"):
         with Pool(2) as pool:
             pool.submit(_die).result()
+
+
+def _refuse_to_load() -> None:
+    raise ValueError("no way back")
+
+
+class _OneWay:
+    """Pickles in the worker; loading it in the parent raises."""
+
+    def __reduce__(self):
+        return (_refuse_to_load, ())
+
+
+def _one_way() -> _OneWay:
+    return _OneWay()
+
+
+def test_a_result_the_parent_cannot_read_is_named_not_called_a_dead_worker():
+    """A result that does not unpickle in the parent breaks Python's pool as a dead worker
+    would (BrokenProcessPool); the error says which it was, with the reading's own error
+    (a message object of a class the parent did not know broke a suite run so)."""
+    from gtgen.errors import WorkerDiedError
+
+    with pytest.raises(WorkerDiedError, match=r"result could not be read back \(ValueError: no way back\)"):
+        with Pool(2) as pool:
+            pool.submit(_one_way).result()
 
 
 def _sigint_held(pid: int) -> bool | None:

@@ -30,11 +30,13 @@ def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> 
     (killed, say: it would otherwise wait for jobs forever), then ``init(*args)``. The
     worker was started with SIGINT blocked (``_QuietSpawnProcess``): it is ignored before
     it is unblocked, so a Ctrl-C during start-up is dropped here too."""
+    import faulthandler
     import threading
     import time
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    faulthandler.enable()  # a worker that crashes in native code prints where, above the pool's one-line error
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -173,11 +175,29 @@ class Pool:
     def __exit__(self, exc_type: type | None, exc: BaseException | None, tb: object) -> None:
         from concurrent.futures.process import BrokenProcessPool
 
+        broken = isinstance(exc, BrokenProcessPool)
+        procs = list((getattr(self._ex, "_processes", None) or {}).values()) if broken else []
         self.close(stop=exc is not None)
-        if isinstance(exc, BrokenProcessPool):  # Python tells no more than that a worker is gone
-            raise WorkerDiedError(f"a worker process of {self.workers} ended abruptly (killed by the system: out of memory, "
-                                  "or a signal; or its set-up failed, printed above), so the output was not completed; run "
-                                  "the command again, with fewer workers or smaller sizes if memory is short") from exc
+        if broken and exc.__cause__ is not None:  # the pool broke reading a result, not on a dead worker
+            lines = [x.strip() for x in str(exc.__cause__).splitlines() if x.strip() not in ("", "'''")]
+            raise WorkerDiedError(f"a worker's result could not be read back ({lines[-1] if lines else 'no message'}), so the output was not "
+                                  "completed; this is a bug of gtgen: please report it with this line") from exc
+        if broken:  # Python tells no more than that a worker is gone: how each one ended says more
+            ends = sorted({_how_ended(p.exitcode) for p in procs if p.exitcode}) or ["unknown"]
+            raise WorkerDiedError(f"a worker process of {self.workers} ended abruptly ({', '.join(ends)}; the pool stops the "
+                                  "others with SIGTERM; SIGKILL is usually the system out of memory, or its set-up failed, "
+                                  "printed above), so the output was not completed; run the command again, with fewer "
+                                  "workers or smaller sizes if memory is short") from exc
+
+
+def _how_ended(exitcode: int) -> str:
+    """Return 'signal SIGKILL' or 'exit code 1' for a process's exit code."""
+    if exitcode < 0:
+        try:
+            return f"signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"signal {-exitcode}"
+    return f"exit code {exitcode}"
 
 
 class BackgroundWrites:
