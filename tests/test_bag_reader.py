@@ -93,22 +93,3 @@ def test_ros1_bag_cut_short_is_read_up_to_the_cut(drive_dir, tmp_path):
         with open(full, "rb") as f:
             want = [(t, topic, bytes(d)) for ref_ in whole.chunks[:n] for t, topic, _, d in whole._chunk_messages(f, ref_, chans)]
         assert got and sorted(got) == sorted(want) and [m[0] for m in got] == sorted(m[0] for m in got)
-
-
-def test_bags_of_one_robot_share_one_typestore_and_other_definitions_get_theirs():
-    """A typestore (parsed definitions, generated deserializers: about 0.1 s a bag) is made
-    once per process for the definitions the bags carry; other definitions of a type get
-    a store of their own, and bytes or text of one definition are the same key."""
-    from types import SimpleNamespace
-
-    from gtgen.bag.msgdefs import typestore_of
-
-    a = SimpleNamespace(name="pkg/msg/Thing", encoding="ros2msg", data=b"float64 x\n")
-    b = SimpleNamespace(name="pkg/msg/Thing", encoding="ros2msg", data="float64 x\n")
-    c = SimpleNamespace(name="pkg/msg/Thing", encoding="ros2msg", data=b"float64 x\nfloat64 y\n")
-    one = typestore_of([a], ros1=False)
-    assert typestore_of([b], ros1=False) is one and typestore_of([a, a], ros1=False) is one
-    other = typestore_of([c], ros1=False)
-    assert other is not one
-    assert list(other.types["pkg/msg/Thing"].__dataclass_fields__)[:2] == ["x", "y"]
-    assert "y" not in one.types["pkg/msg/Thing"].__dataclass_fields__
