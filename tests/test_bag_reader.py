@@ -93,3 +93,31 @@ def test_ros1_bag_cut_short_is_read_up_to_the_cut(drive_dir, tmp_path):
         with open(full, "rb") as f:
             want = [(t, topic, bytes(d)) for ref_ in whole.chunks[:n] for t, topic, _, d in whole._chunk_messages(f, ref_, chans)]
         assert got and sorted(got) == sorted(want) and [m[0] for m in got] == sorted(m[0] for m in got)
+
+
+@pytest.mark.parametrize("name", ["drive.mcap", "drive.bag"])
+def test_a_detached_camera_info_survives_a_new_typestore_and_reads_alike(drive_dir, name, monkeypatch):
+    """The scan a worker hands back holds each camera's CameraInfo: as rosbags' own object
+    it unpickles only while the parent's rosbags.usertypes module (replaced by every new
+    typestore) holds its class; detached, it needs no class and gives the same intrinsics,
+    lens and frame."""
+    import pickle
+    import sys
+
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from gtgen.bag.decode.image import intrinsics, lens
+    from gtgen.bag.reader import BagSet, detached
+
+    with BagSet([drive_dir / name]) as bags:
+        msg = next(m for _, _, _, m, _ in bags.messages(["/cam_front/camera_info"]))
+    raw, kept = pickle.dumps(msg), pickle.dumps(detached(msg))
+    monkeypatch.setitem(sys.modules, "rosbags.usertypes", sys.modules["rosbags.usertypes"])  # put back after the test
+    get_typestore(Stores.EMPTY).register(get_types_from_msg("float64 x\n", "other_msgs/msg/Thing"))  # another store's module
+    with pytest.raises(AttributeError):
+        pickle.loads(raw)
+    info = pickle.loads(kept)
+    K, size = intrinsics(info)
+    K0, size0 = intrinsics(msg)
+    np.testing.assert_array_equal(K, K0)
+    assert size == size0 and lens(info) == lens(msg) and info.header.frame_id == msg.header.frame_id

@@ -31,6 +31,22 @@ Digest = tuple[int, int]  # (crc32c, length) of a message's serialized bytes
 Record = tuple[str, str, int, object | None, str | None, Digest | None]  # a Message and its digest
 
 
+def detached(msg: object) -> object:
+    """Return a decoded message as nested ``SimpleNamespace`` objects with the same
+    attributes (arrays and plain values as they are), to keep or hand to another process.
+    rosbags generates a message's class into one module, ``rosbags.usertypes``, which every
+    new typestore replaces: a message object pickled in a worker unpickles in the parent
+    only while the parent's module holds that class."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    if dataclasses.is_dataclass(msg) and not isinstance(msg, type):
+        return SimpleNamespace(**{f.name: detached(getattr(msg, f.name)) for f in dataclasses.fields(msg)})
+    if isinstance(msg, list):
+        return [detached(x) for x in msg]
+    return msg
+
+
 @dataclass(frozen=True)
 class TopicInfo:
     """A topic in a set of bags: its message type and message count."""

@@ -121,7 +121,7 @@ class Scan:
     tf: dict[Edge, EdgeSamples] = field(default_factory=lambda: defaultdict(EdgeSamples))  # dynamic edges
     static: dict[Edge, NDArray] = field(default_factory=dict)
     gnss: list[tuple] = field(default_factory=list)  # (stamp, lat, lon, alt, variances, status, ordinal)
-    info: dict[str, object] = field(default_factory=dict)
+    info: dict[str, object] = field(default_factory=dict)  # camera -> its CameraInfo, detached (gtgen.bag.reader.detached)
     frames: dict[str, str] = field(default_factory=dict)
     stamps: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))  # per image / voxel map, -1 where unusable
     voxel_frames: list[str] = field(default_factory=list)  # per voxel-map message, "" where it is unusable

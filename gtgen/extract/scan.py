@@ -28,7 +28,7 @@ from gtgen.bag.decode.gridmap import check_gridmap
 from gtgen.bag.decode.image import decode_image, image_source, intrinsics
 from gtgen.bag.decode.pointcloud import decode_pointcloud, decode_scan
 from gtgen.bag.decode.tf import frame_id, odometry_pose, quat_xyzw, transform_matrix
-from gtgen.bag.reader import BagSet, Record, stamp_ns
+from gtgen.bag.reader import BagSet, Record, detached, stamp_ns
 from gtgen.bag.tf import Edge, EdgeSamples, relevant_edges
 from gtgen.config import GtgenConfig
 from gtgen.errors import DecodeError
@@ -172,7 +172,7 @@ class _Scanner:
         elif role == "gnss":
             self._gnss(t, msg, i)
         elif role.startswith("camera_info."):
-            self.scan.info.setdefault(role.split(".")[1], msg)
+            self.scan.info.setdefault(role.split(".")[1], detached(msg))  # the scan goes back to the parent
         elif role.startswith("camera."):
             self.scan.stamps[role].append(t)
             self.scan.frames.setdefault(role, frame_id(hdr.frame_id))
