@@ -13,8 +13,9 @@ import hashlib
 import heapq
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import google_crc32c
 
@@ -37,11 +38,8 @@ def detached(msg: object) -> object:
     rosbags generates a message's class into one module, ``rosbags.usertypes``, which every
     new typestore replaces: a message object pickled in a worker unpickles in the parent
     only while the parent's module holds that class."""
-    import dataclasses
-    from types import SimpleNamespace
-
-    if dataclasses.is_dataclass(msg) and not isinstance(msg, type):
-        return SimpleNamespace(**{f.name: detached(getattr(msg, f.name)) for f in dataclasses.fields(msg)})
+    if is_dataclass(msg) and not isinstance(msg, type):
+        return SimpleNamespace(**{f.name: detached(getattr(msg, f.name)) for f in fields(msg)})
     if isinstance(msg, list):
         return [detached(x) for x in msg]
     return msg

@@ -160,14 +160,18 @@ class Pool:
         """Stop the workers: waiting for running jobs and cancelling queued ones, or with
         ``stop`` (the caller failed or was interrupted) ending the running ones too."""
         if self._ex is not None:
-            if stop:  # no public way before Python 3.14
-                for p in list((getattr(self._ex, "_processes", None) or {}).values()):
+            if stop:
+                for p in self._processes():
                     p.terminate()
             self._ex.shutdown(wait=True, cancel_futures=True)
             self._ex = None
             for k, v in self._env.items():
                 if v is None:
                     os.environ.pop(k, None)
+
+    def _processes(self) -> list:
+        """Return the worker processes (no public way before Python 3.14)."""
+        return list((getattr(self._ex, "_processes", None) or {}).values())
 
     def __enter__(self) -> Pool:
         return self
@@ -176,7 +180,7 @@ class Pool:
         from concurrent.futures.process import BrokenProcessPool
 
         broken = isinstance(exc, BrokenProcessPool)
-        procs = list((getattr(self._ex, "_processes", None) or {}).values()) if broken else []
+        procs = self._processes() if broken else []
         self.close(stop=exc is not None)
         if broken and exc.__cause__ is not None:  # the pool broke reading a result, not on a dead worker
             lines = [x.strip() for x in str(exc.__cause__).splitlines() if x.strip() not in ("", "'''")]
