@@ -66,11 +66,37 @@ def bilinear(grids: NDArray, rows: NDArray, cols: NDArray, outside: str = "nan")
     if outside == "edge" and rows.shape == (rows.size, 1) and cols.shape == (1, cols.size):
         return _bilinear_outer(g, rows[:, 0], cols[0])
     r, c = np.broadcast_arrays(rows, cols)
-    coords = [r.ravel(), c.ravel()]
-    mode, cval = ("constant", np.nan) if outside == "nan" else ("nearest", 0.0)
     flat = g.reshape(-1, *g.shape[-2:])
-    out = np.stack([map_coordinates(x, coords, order=1, mode=mode, cval=cval, prefilter=False) for x in flat])
+    if outside == "nan" and g.dtype in (np.float32, np.float64) and min(g.shape[-2:]) >= 2:
+        out = _bilinear_gather(flat, r.ravel(), c.ravel())
+    else:
+        coords = [r.ravel(), c.ravel()]
+        mode, cval = ("constant", np.nan) if outside == "nan" else ("nearest", 0.0)
+        out = np.stack([map_coordinates(x, coords, order=1, mode=mode, cval=cval, prefilter=False) for x in flat])
     return out.reshape(*g.shape[:-2], *r.shape)
+
+
+def _bilinear_gather(flat: NDArray, r: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray:
+    """``bilinear(..., outside="nan")`` of float grids (k, n, m), n, m >= 2, at the flat
+    coordinates ``r``, ``c``: four gathers and the weights map_coordinates uses, in its
+    order of products and sums (float64), so the same bits as its order-1 spline (the
+    test oracle) at about half its time (a DEM patch per sample in dem-align)."""
+    n, m = flat.shape[-2:]
+    inside = (r >= 0) & (r <= n - 1) & (c >= 0) & (c <= m - 1)  # False for NaN coordinates
+    r, c = np.where(inside, r, 0.0), np.where(inside, c, 0.0)
+    i, j = np.minimum(np.floor(r), n - 2), np.minimum(np.floor(c), m - 2)
+    a0, b0 = 1.0 - (r - i), 1.0 - (c - j)  # scipy's weights: the upper one is 1 minus the lower
+    a1, b1 = 1.0 - a0, 1.0 - b0
+    k = i.astype(np.intp) * m + j.astype(np.intp)
+    out = np.empty((len(flat), len(r)), flat.dtype)
+    for x, o in zip(flat.reshape(len(flat), -1), out):
+        v = x[k] * a0
+        v *= b0
+        v += x[k + 1] * a0 * b1
+        v += x[k + m] * a1 * b0
+        v += x[k + m + 1] * a1 * b1
+        o[:] = np.where(inside, v, np.nan)
+    return out
 
 
 def _axis_taps(x: NDArray[np.float64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:

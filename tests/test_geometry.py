@@ -64,6 +64,29 @@ def test_yaw_transform_moves_points(yaw, x, y):
     np.testing.assert_allclose(p, [x + np.cos(yaw), y + np.sin(yaw), 1.0], atol=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1), st.sampled_from([np.float32, np.float64]))
+def test_bilinear_with_nan_outside_gives_the_bits_of_map_coordinates(n, m, seed, dtype):
+    """The gathering sampler of float grids (outside="nan") against scipy's order-1
+    map_coordinates, its oracle: the same values to the bit at cell centres, just off them,
+    halfway, beyond the outer centres, at NaN coordinates, next to NaN and infinite cells."""
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(seed)
+    g = rng.normal(0, 100, (3, n, m)).astype(dtype)
+    g[rng.random(g.shape) < 0.15] = np.nan
+    g[rng.random(g.shape) < 0.05] = np.inf
+    size = 64
+    r = rng.integers(-1, n + 1, size) + rng.choice([0.0, 0.5, 0.25, 1e-12, -1e-12, 0.7], size)
+    c = rng.integers(-1, m + 1, size) + rng.choice([0.0, 0.5, 0.75, 1e-12, -1e-12, 0.3], size)
+    r[:8] = rng.uniform(-1, n, 8)
+    r[8], c[9], r[10], c[10] = np.nan, np.nan, np.inf, -np.inf
+    got = bilinear(g, r.reshape(8, 8), c.reshape(8, 8))
+    want = np.stack([map_coordinates(x, [r, c], order=1, mode="constant", cval=np.nan, prefilter=False) for x in g])
+    assert got.dtype == want.dtype and got.shape == (3, 8, 8)
+    assert np.array_equal(got.reshape(3, -1), want, equal_nan=True)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1), st.sampled_from([np.float32, np.float64]))
 def test_bilinear_on_a_grid_of_coordinates_equals_the_general_sampler(n, m, seed, dtype):
