@@ -86,8 +86,8 @@ class ScanInput:
         age = np.concatenate(ages) if ages else np.zeros(0, np.int64)
         half = 0.5 * self.cfg.grids.short.length_m
         inside = (np.abs(pts[:, 0]) < half) & (np.abs(pts[:, 1]) < half)
-        pts, age = pts[inside], age[inside]
+        pts, age = np.compress(inside, pts, axis=0), age[inside]
         keep = first_per_voxel(pts, sh.scan_voxel_m)[: sh.max_scan_points]
         out = np.full((sh.max_scan_points, 3), np.nan, np.float32)
-        out[: len(keep)] = pts[keep]
+        out[: len(keep)] = np.take(pts, keep, axis=0)
         return out, np.searchsorted(age[keep], np.arange(sh.max_scans), side="right").astype(np.int32)
