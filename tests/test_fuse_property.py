@@ -65,3 +65,16 @@ def test_fusion_yields_in_time_order():
     samples = [SampleGrid(t, np.zeros(3), 0.0, int(np.searchsorted(src.t_ns, t, side="right")) - 1, 4, 1.0) for t in (9_000_000_000, 1_000_000_000, 5_000_000_000)]
     order = [k for k, _ in fuse_range(src, samples, FuseParams(window_ns=2_000_000_000))]
     assert order == [1, 2, 0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40), st.sampled_from([0.2, 0.37, 0.8]), st.sampled_from([0.1, 0.2, 0.8]),
+       st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(-7.0, 7.0))
+def test_the_lattice_index_of_a_target_grid_equals_the_meshgrid_one(size, res, lattice_res, x, y, yaw):
+    """The target grid's lattice indices from a column and a row of products equal those of
+    the meshgrid (its oracle) cell for cell: the same floats, so the same floor."""
+    from gtgen.fuse.lattice import target_lattice_index, target_lattice_index_naive
+
+    pos = np.array([x, y, 0.0])
+    for a, b in zip(target_lattice_index(size, res, lattice_res, pos, yaw), target_lattice_index_naive(size, res, lattice_res, pos, yaw)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
