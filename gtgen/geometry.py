@@ -125,3 +125,21 @@ def rescale_K(K: NDArray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> F
     K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
     K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
     return K2
+
+
+def all_columns(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Return which rows of a boolean (N, k) array are true in every column: ``mask.all(axis=1)``
+    column by column (NumPy's reduction over a short last axis costs about 25 times as much
+    on point clouds of (N, 3))."""
+    if mask.shape[1] == 0:
+        return np.ones(len(mask), bool)
+    out = mask[:, 0].copy()
+    for c in range(1, mask.shape[1]):
+        out &= mask[:, c]
+    return out
+
+
+def finite_rows(pts: NDArray) -> NDArray:
+    """Return the rows of ``pts`` (N, k) whose values are all finite, in order (np.compress:
+    boolean indexing of rows costs about four times as much)."""
+    return np.compress(all_columns(np.isfinite(pts)), pts, axis=0)

@@ -101,3 +101,20 @@ def test_bilinear_on_a_grid_of_coordinates_equals_the_general_sampler(n, m, seed
     general = bilinear(g, R.copy(), C.copy(), outside="edge")
     assert fast.shape == general.shape == (2, 7, 5) and fast.dtype == general.dtype
     np.testing.assert_allclose(fast, general, rtol=0, atol=1e-4 if dtype == np.float32 else 1e-10)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 40), st.integers(0, 4), st.integers(0, 2**32 - 1), st.sampled_from([np.float32, np.float64]))
+def test_finite_rows_and_all_columns_equal_numpys_row_reductions(n, k, seed, dtype):
+    """The column-by-column row tests against NumPy's ``all(axis=1)`` and boolean indexing
+    (their oracles), with NaN and infinite values, no rows and no columns."""
+    from gtgen.geometry import all_columns, finite_rows
+
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0, 1e3, (n, k)).astype(dtype)
+    pts[rng.random(pts.shape) < 0.1] = np.nan
+    pts[rng.random(pts.shape) < 0.05] = -np.inf
+    ok = np.isfinite(pts)
+    assert np.array_equal(all_columns(ok), np.all(ok, axis=1))
+    got, want = finite_rows(pts), pts[np.all(ok, axis=1)]
+    assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want)

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.bag.tf import TfBuffer
-from gtgen.geometry import invert
+from gtgen.geometry import all_columns, finite_rows, invert
 
 CM = 0.01  # stored unit [m]
 FILL = -32768  # int16 fill of the rows past a scan's points
@@ -31,12 +31,12 @@ def compact(pts: NDArray[np.float32], n: int) -> tuple[NDArray[np.int16], int, N
     count and the shift of the row's origin in that frame [m]: 0, or for a cloud not
     centred on its frame's origin (one published in a map frame) its median point to the
     cm. Kept: the finite points within ``LIMIT_M`` of that origin, at most the ``n`` nearest."""
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    pts = finite_rows(pts)
     shift = np.zeros(3)
     if len(pts) and np.abs(pts).max() >= LIMIT_M:
         shift = np.round(np.median(pts, axis=0).astype(np.float64), 2)
     p = pts - shift
-    p = p[np.all(np.abs(p) < LIMIT_M, axis=1)]
+    p = np.compress(all_columns(np.abs(p) < LIMIT_M), p, axis=0)
     if len(p) > n:
         r2 = np.einsum("ij,ij->i", p, p)
         p = p[np.sort(np.argpartition(r2, n - 1)[:n])]

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.config import RANGES, GtgenConfig
+from gtgen.geometry import all_columns
 from gtgen.mapping.cells import RollingCells
 from gtgen.mapping.layers import MapLayers, layers
 from gtgen.mapping.voxels import VoxelMemory
@@ -46,7 +47,7 @@ class Mapper:
         """Return a sweep's points in odom (the body masked out, and those higher above the
         base than ``mapping.max_height_m``) and their ranges from the sensor."""
         p = np.asarray(points_base, np.float64)
-        p = p[~body_mask(p, self.cfg) & np.isfinite(p).all(axis=1)]
+        p = np.compress(~body_mask(p, self.cfg) & all_columns(np.isfinite(p)), p, axis=0)
         rng = np.linalg.norm(p - np.asarray(origin_base, np.float64)[None, :], axis=1).astype(np.float32)
         odom = p @ T_odom_base[:3, :3].T + T_odom_base[:3, 3]
         top = self.cfg.mapping.max_height_m

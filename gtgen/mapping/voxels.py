@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from gtgen.geometry import all_columns
+
 WINDOW_EVERY = 10  # sweeps between the checks of which voxels left the window
 BIAS = 1 << 20  # keys are offset by this before packing: +-2^20 voxels (420 km at 0.4 m) per axis
 
@@ -37,7 +39,7 @@ class VoxelMemory:
         """Add one sweep's points (N, 3) in odom, taken with the vehicle at ``center_xy``:
         voxels seen again get the new stamp, new ones are inserted in key order (no sort of
         the whole set); voxels older than ``memory_s`` or out of the window are dropped."""
-        near = np.all(np.abs(pts_odom[:, :2] - center_xy[:2]) < self.half_m, axis=1)
+        near = all_columns(np.abs(pts_odom[:, :2] - center_xy[:2]) < self.half_m)
         k = np.floor(pts_odom[near] / self.voxel_m).astype(np.int64)
         if np.any(np.abs(k) >= BIAS):
             raise ValueError(f"a point lies beyond {BIAS * self.voxel_m / 1000:.0f} km of the odom origin")
@@ -58,7 +60,7 @@ class VoxelMemory:
 
     def _inside(self, center_xy: NDArray) -> NDArray[np.bool_]:
         c = (unpack3(self.key)[:, :2] + 0.5) * self.voxel_m
-        return np.all(np.abs(c - center_xy[:2]) < self.half_m, axis=1)
+        return all_columns(np.abs(c - center_xy[:2]) < self.half_m)
 
     def points(self, t_ns: int, center_xy: NDArray) -> NDArray[np.float32]:
         """Return the centres (N, 3) in odom of the voxels seen in the ``memory_s`` before

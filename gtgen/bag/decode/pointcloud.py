@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gtgen.errors import DecodeError
+from gtgen.geometry import all_columns, finite_rows
 
 FLOAT_KINDS = {7: "f4", 8: "f8"}  # PointField FLOAT32, FLOAT64
 KINDS = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}  # every PointField datatype
@@ -67,7 +68,7 @@ def time_field(msg: object) -> str | None:
 def decode_pointcloud(msg: object) -> NDArray[np.float32]:
     """Return the finite xyz points (N, 3) of a PointCloud2."""
     pts = _xyz(_records(msg, list("xyz")))
-    return pts[np.all(np.isfinite(pts), axis=1)]
+    return finite_rows(pts)
 
 
 def decode_scan(msg: object) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
@@ -76,7 +77,7 @@ def decode_scan(msg: object) -> tuple[NDArray[np.float32], NDArray[np.float32] |
     tf = time_field(msg)
     rec = _records(msg, list("xyz") + ([tf] if tf else []))
     pts = _xyz(rec)
-    ok = np.all(np.isfinite(pts), axis=1)
+    ok = all_columns(np.isfinite(pts))
     if tf is None:
         return pts[ok], None
     t = rec[tf].astype(np.float64) * TIME_FIELDS[tf]
