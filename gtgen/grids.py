@@ -76,26 +76,33 @@ def bilinear(grids: NDArray, rows: NDArray, cols: NDArray, outside: str = "nan")
     return out.reshape(*g.shape[:-2], *r.shape)
 
 
+GATHER_CHUNK = 1 << 18  # points per pass of the gathering sampler: its float64 temporaries stay about 20 MB
+
+
 def _bilinear_gather(flat: NDArray, r: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray:
     """``bilinear(..., outside="nan")`` of float grids (k, n, m), n, m >= 2, at the flat
     coordinates ``r``, ``c``: four gathers and the weights map_coordinates uses, in its
     order of products and sums (float64), so the same bits as its order-1 spline (the
-    test oracle) at about half its time (a DEM patch per sample in dem-align)."""
+    test oracle) at about half its time (a DEM patch per sample in dem-align). Points are
+    taken ``GATHER_CHUNK`` at a time, so memory stays bounded for a whole tile."""
     n, m = flat.shape[-2:]
-    inside = (r >= 0) & (r <= n - 1) & (c >= 0) & (c <= m - 1)  # False for NaN coordinates
-    r, c = np.where(inside, r, 0.0), np.where(inside, c, 0.0)
-    i, j = np.minimum(np.floor(r), n - 2), np.minimum(np.floor(c), m - 2)
-    a0, b0 = 1.0 - (r - i), 1.0 - (c - j)  # scipy's weights: the upper one is 1 minus the lower
-    a1, b1 = 1.0 - a0, 1.0 - b0
-    k = i.astype(np.intp) * m + j.astype(np.intp)
+    grids = flat.reshape(len(flat), -1)
     out = np.empty((len(flat), len(r)), flat.dtype)
-    for x, o in zip(flat.reshape(len(flat), -1), out):
-        v = x[k] * a0
-        v *= b0
-        v += x[k + 1] * a0 * b1
-        v += x[k + m] * a1 * b0
-        v += x[k + m + 1] * a1 * b1
-        o[:] = np.where(inside, v, np.nan)
+    for s in range(0, len(r), GATHER_CHUNK):
+        rs, cs = r[s : s + GATHER_CHUNK], c[s : s + GATHER_CHUNK]
+        inside = (rs >= 0) & (rs <= n - 1) & (cs >= 0) & (cs <= m - 1)  # False for NaN coordinates
+        rs, cs = np.where(inside, rs, 0.0), np.where(inside, cs, 0.0)
+        i, j = np.minimum(np.floor(rs), n - 2), np.minimum(np.floor(cs), m - 2)
+        a0, b0 = 1.0 - (rs - i), 1.0 - (cs - j)  # scipy's weights: the upper one is 1 minus the lower
+        a1, b1 = 1.0 - a0, 1.0 - b0
+        k = i.astype(np.intp) * m + j.astype(np.intp)
+        for x, o in zip(grids, out):
+            v = x[k] * a0
+            v *= b0
+            v += x[k + 1] * a0 * b1
+            v += x[k + m] * a1 * b0
+            v += x[k + m + 1] * a1 * b1
+            o[s : s + GATHER_CHUNK] = np.where(inside, v, np.nan)
     return out
 
 
