@@ -76,7 +76,7 @@ def bilinear(grids: NDArray, rows: NDArray, cols: NDArray, outside: str = "nan")
     return out.reshape(*g.shape[:-2], *r.shape)
 
 
-GATHER_CHUNK = 1 << 18  # points per pass of the gathering sampler: its float64 temporaries stay about 20 MB
+GATHER_CHUNK = 1 << 15  # points per pass of the gathering sampler: its float64 temporaries stay in the cache (256 kB each)
 
 
 def _bilinear_gather(flat: NDArray, r: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray:
