@@ -13,6 +13,7 @@ nothing changes. A user's own ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHO
 from __future__ import annotations
 
 import ctypes
+import ctypes.util
 import os
 
 MMAP_THRESHOLD_B = 32 << 20  # allocations below this come from the heap [bytes]
@@ -27,7 +28,8 @@ def keep_freed_memory() -> bool:
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return False
     try:
-        mallopt = ctypes.CDLL(None).mallopt  # the symbols already loaded (find_library would run ldconfig)
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
