@@ -19,7 +19,6 @@ import os
 MMAP_THRESHOLD_B = 32 << 20  # allocations below this come from the heap [bytes]
 TRIM_THRESHOLD_B = 128 << 20  # freed heap kept before it is returned to the kernel [bytes]
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's parameters (malloc.h)
-applied = False  # whether this process set them
 
 
 def keep_freed_memory() -> bool:
@@ -33,6 +32,4 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    global applied
-    applied = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_B)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_B))
-    return applied
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_B)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_B))
