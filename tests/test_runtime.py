@@ -132,48 +132,6 @@ def test_pool_map_submit_and_errors(workers, monkeypatch):
     assert _threads() is None  # the parent's environment is restored
 
 
-def _mapped_for_16_mb() -> int:
-    """How many separately mapped blocks glibc made for one new 16 MB array in this process
-    (0: it came from the heap, as under gtgen/runtime/memory.py's thresholds)."""
-    import ctypes
-
-    import numpy as np
-
-    class MallInfo2(ctypes.Structure):
-        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
-                                                    "uordblks", "fordblks", "keepcost")]
-
-    libc = ctypes.CDLL("libc.so.6")
-    libc.mallinfo2.restype = MallInfo2
-    before = libc.mallinfo2().hblks
-    a = np.ones(16 << 20, np.uint8)
-    return int(libc.mallinfo2().hblks - before + 0 * a[0])
-
-
-KEEP = "from gtgen.runtime.memory import keep_freed_memory; from test_runtime import _mapped_for_16_mb as m; print(keep_freed_memory(), m())"
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
-def test_workers_and_the_cli_keep_grid_sized_arrays_on_the_heap_and_a_users_malloc_setting_wins():
-    """Pool workers and the CLI raise glibc's mmap and trim thresholds (gtgen/runtime/memory.py):
-    a 16 MB array comes from the heap, where freed grids are reused instead of faulted in
-    again (glibc's default maps it by itself); the user's own setting in the environment wins."""
-    with Pool(2) as pool:
-        assert [pool.submit(_mapped_for_16_mb).result() for _ in range(2)] == [0, 0]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parent), env.get("PYTHONPATH", "")])
-    ours = subprocess.run([sys.executable, "-c", KEEP], capture_output=True, text=True, env=env)
-    assert ours.stdout.split() == ["True", "0"], ours.stderr
-    env["MALLOC_MMAP_THRESHOLD_"] = "131072"
-    users = subprocess.run([sys.executable, "-c", KEEP], capture_output=True, text=True, env=env)
-    assert users.stdout.split() == ["False", "1"], users.stderr
-    cli = subprocess.run([sys.executable, "-c", "import sys; sys.argv = ['gtgen', '--help']; "
-                          "from gtgen.cli.app import main\ntry: main()\nexcept SystemExit: pass\n"
-                          "from test_runtime import _mapped_for_16_mb as m; print(m())"],
-                         capture_output=True, text=True, env={k: v for k, v in env.items() if not k.startswith("MALLOC_")})
-    assert cli.stdout.split()[-1] == "0", cli.stderr
-
-
 def _die() -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 

@@ -206,10 +206,7 @@ def main() -> None:
     its clean-up (the temporary outputs go), with exit code 143."""
     import signal
 
-    from gtgen.runtime.memory import keep_freed_memory
-
     signal.signal(signal.SIGTERM, _terminated)
-    keep_freed_memory()
     try:
         code = app(prog_name="gtgen", standalone_mode=False)
     except typer.TyperException as err:  # click's usage errors

@@ -17,7 +17,6 @@ from concurrent.futures import Future
 from typing import Any
 
 from gtgen.errors import WorkerDiedError
-from gtgen.runtime.memory import keep_freed_memory
 from gtgen.runtime.progress import track
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -38,7 +37,6 @@ def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     faulthandler.enable()  # a worker that crashes in native code prints where, above the pool's one-line error
-    keep_freed_memory()  # its grids' temporaries reuse memory rather than fault it in again
 
     def watch() -> None:
         while os.getppid() == parent:
