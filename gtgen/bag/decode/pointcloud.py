@@ -79,10 +79,10 @@ def decode_scan(msg: object) -> tuple[NDArray[np.float32], NDArray[np.float32] |
     pts = _xyz(rec)
     ok = all_columns(np.isfinite(pts))
     if tf is None:
-        return pts[ok], None
+        return np.compress(ok, pts, axis=0), None
     t = rec[tf].astype(np.float64) * TIME_FIELDS[tf]
     if t.size and np.abs(t).max() > 1e6:  # absolute times (some drivers): relative to the header stamp
         hdr = msg.header.stamp  # type: ignore[attr-defined]
         t = t - (int(hdr.sec) + int(getattr(hdr, "nanosec", getattr(hdr, "nsec", 0))) * 1e-9)
     ok &= np.isfinite(t)
-    return pts[ok], t[ok].astype(np.float32)
+    return np.compress(ok, pts, axis=0), t[ok].astype(np.float32)  # rows by compress, as finite_rows
