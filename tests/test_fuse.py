@@ -86,6 +86,33 @@ def test_fused_store(fused_store, drive_store, cfg):
     assert np.nanmin(lt) >= -cfg.extract.map_skew_s - 1e-6 and np.nanmax(lt) <= cfg.fuse.window_s
 
 
+def test_without_qa_ranges_fuse_stores_no_qa_grid_and_the_same_dataset(drive_store, fused_store, cfg, tmp_path):
+    """shards.qa_ranges [] (the default): the fused store holds no QA grid, its other grids
+    are the full store's bit for bit, and dem-align makes the same dataset from either;
+    a config asking for QA grids the fused store lacks is refused in one line."""
+    import zarr
+
+    from conftest import assert_same_store
+    from gtgen.dataset.dem_align import run_dem_align
+    from gtgen.errors import ConfigError
+    from gtgen.storage.schema import fused_qa_paths
+
+    lean_cfg = cfg.model_copy(update={"shards": cfg.shards.model_copy(update={"qa_ranges": []})})
+    run_fuse(drive_store, tmp_path / "lean.zarr", lean_cfg, workers=1)
+    full, lean = zarr.open_group(str(fused_store), mode="r"), zarr.open_group(str(tmp_path / "lean.zarr"), mode="r")
+    assert lean.attrs["qa_ranges"] == [] and full.attrs["qa_ranges"] == ["micro", "short"]
+    names = {k for k, _ in lean.members(max_depth=None) if isinstance(_, zarr.Array)}
+    assert names and not names & set(fused_qa_paths()) and names | set(fused_qa_paths()) >= {k for k, a in full.members(max_depth=None) if isinstance(a, zarr.Array)}
+    for name in names:
+        np.testing.assert_array_equal(full[name][:], lean[name][:], err_msg=name)
+    with pytest.raises(ConfigError, match=r"asks for the QA grids of \['micro', 'short'\].*run 'gtgen fuse' again") as err:
+        run_dem_align(drive_store, tmp_path / "lean.zarr", None, tmp_path / "qa.zarr", cfg, workers=1)
+    assert "\n" not in str(err.value) and not (tmp_path / "qa.zarr").exists()
+    run_dem_align(drive_store, tmp_path / "lean.zarr", None, tmp_path / "a.zarr", lean_cfg, workers=1)
+    run_dem_align(drive_store, fused_store, None, tmp_path / "b.zarr", lean_cfg, workers=1)
+    assert_same_store(tmp_path / "a.zarr", tmp_path / "b.zarr")
+
+
 def test_averaging_beats_the_single_map(dataset):
     """Fused elevation error against truth is lower than the single X-Racer map's, on the
     cells both call observed (odometry z drift on)."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -56,6 +58,12 @@ def test_fast_fusion_equals_oracle(case):
             np.testing.assert_allclose(getattr(f, name), getattr(o, name), rtol=1e-5, atol=1e-5, equal_nan=True, err_msg=name)
         np.testing.assert_array_equal(f.count, o.count)
         np.testing.assert_array_equal(f.region, o.region)
+    # without the QA grids (shards.qa_ranges): none of them, every other grid bit for bit
+    lean = dict(fuse_range(src, samples, replace(params, qa=False)))
+    for k, f in lean.items():
+        assert f.confidence is None and f.last_dt_s is None and f.xr_confidence is None
+        for name in ("elevation", "risk", "count", "region", "xr_elevation", "xr_risk"):
+            np.testing.assert_array_equal(getattr(f, name), getattr(fast[k], name), err_msg=name)
 
 
 def test_fusion_yields_in_time_order():

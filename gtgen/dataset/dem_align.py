@@ -67,6 +67,7 @@ def run_dem_align(drive_path: Path, fused_path: Path, dem_dir: Path | None, out:
     drive, fused = DriveStore(drive_path), FusedStore(fused_path)
     _check_same_drive(drive, fused)
     _check_grids(fused, cfg)
+    _check_qa(fused, cfg)
     dem_src = _dem_source(drive, dem_dir, cfg)
     reads = [drive_path, fused_path, *([dem_src] if dem_src is not None else [])]  # the default DEM folder too
     with stage_output(out, reads=reads, overwrite=overwrite) as tmp, Pool(workers) as pool:
@@ -132,6 +133,14 @@ def _check_grids(fused: FusedStore, cfg: GtgenConfig) -> None:
             raise ConfigError(f"fused store '{fused.path}' has {r} grids of {theirs.size} cells at {theirs.resolution_m} m; "
                               f"the config asks for {mine.size} at {mine.resolution_m} m: run 'gtgen fuse' again with this config, "
                               "or pass the config it was fused with")
+
+
+def _check_qa(fused: FusedStore, cfg: GtgenConfig) -> None:
+    """Refuse a fused store without the QA grids the config's dataset stores."""
+    missing = [r for r in cfg.shards.qa_ranges if r not in fused.qa_ranges]
+    if missing:
+        raise ConfigError(f"shards.qa_ranges {list(cfg.shards.qa_ranges)} asks for the QA grids of {missing}, but fused store "
+                          f"'{fused.path}' was fused with shards.qa_ranges {fused.qa_ranges}: run 'gtgen fuse' again with this config")
 
 
 def _qa(p: Placement) -> dict[str, Any]:

@@ -15,6 +15,11 @@ map stamped <= t) and window [a, b] = [min(t - past, t_m0), t + window]:
 - region: 1 where m0 is confident (> min_conf), else 2 where some map in the window
   is, else 3 (unobserved; the DEM stage fills or zeroes these).
 
+The confidence, the last observation's stamp and X-Racer's confidence at t are QA grids
+(``schema.QA_GRIDS``: no label, region or training input depends on them): with
+``FuseParams.qa`` false they are not computed (None), and the window maxima below are
+not run at all, about a quarter of fuse's time.
+
 Cost: ``fuse_range`` splats every map into odom-lattice accumulators a fixed number of
 times whatever the window: sums and counts slide (add at b, subtract past a), the
 latest risk and last-observation stamps are overwritten in time order and expire past
@@ -50,6 +55,7 @@ class FuseParams:
     elevation_rule: str = "mean"
     top_height_m: float = 0.5
     top_footprint_m: float = 8.0
+    qa: bool = True  # compute the QA grids (confidence, last observation, X-Racer's confidence)
 
     def __post_init__(self) -> None:
         if self.elevation_rule not in ELEVATION_RULES:
@@ -85,17 +91,18 @@ class SampleGrid:
 
 @dataclass
 class Fused:
-    """One sample's fused labels and its X-Racer map at t, all (size, size)."""
+    """One sample's fused labels and its X-Racer map at t, all (size, size); the QA grids
+    (confidence, last_dt_s, xr_confidence) None when not computed (``FuseParams.qa``)."""
 
     elevation: NDArray[np.float32]
-    confidence: NDArray[np.float32]
+    confidence: NDArray[np.float32] | None
     risk: NDArray[np.float32]
     count: NDArray[np.uint16]
-    last_dt_s: NDArray[np.float32]
+    last_dt_s: NDArray[np.float32] | None
     region: NDArray[np.uint8]
     xr_elevation: NDArray[np.float32]
     xr_risk: NDArray[np.float32]
-    xr_confidence: NDArray[np.float32]
+    xr_confidence: NDArray[np.float32] | None
 
 
 class MapSource:
@@ -140,7 +147,7 @@ def window_bounds(s: SampleGrid, maps: MapSource, p: FuseParams) -> tuple[int, i
 
 
 def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParams,
-            ssum: NDArray, cnt: NDArray, risk: NDArray, last: NDArray, cmax: NDArray,
+            ssum: NDArray, cnt: NDArray, risk: NDArray, last: NDArray | None, cmax: NDArray | None,
             gsum: NDArray | None = None, gcnt: NDArray | None = None) -> Fused:
     z = s.pos[2]
     used = cnt
@@ -148,18 +155,21 @@ def _finish(s: SampleGrid, I: NDArray, J: NDArray, maps: MapSource, p: FuseParam
         ssum, used = np.where(gcnt > 0, gsum, ssum), np.where(gcnt > 0, gcnt, cnt)
     with np.errstate(invalid="ignore", divide="ignore"):
         elev = np.where(used > 0, ssum / np.maximum(used, 1) - z, np.nan).astype(np.float32)
-    conf = np.where(np.isfinite(cmax), cmax, np.nan).astype(np.float32)
     if 0 <= s.current_map < len(maps):
         xe, xr, xc = gather_map(maps[s.current_map], I, J)
     else:
         xe = xr = xc = np.full(I.shape, np.nan)
     cur = np.isfinite(xe) & (xc > p.min_conf)
     region = np.where(cur, codes.OBS_PC, np.where(cnt > 0, codes.OBS_F, codes.UNOBS)).astype(np.uint8)
-    last_dt = np.where(last >= 0, (last - s.t_ns) * 1e-9, np.nan).astype(np.float32)
+    conf = last_dt = xr_conf = None
+    if p.qa:
+        conf = np.where(np.isfinite(cmax), cmax, np.nan).astype(np.float32)
+        last_dt = np.where(last >= 0, (last - s.t_ns) * 1e-9, np.nan).astype(np.float32)
+        xr_conf = xc.astype(np.float32)
     return Fused(
         elevation=elev, confidence=conf, risk=risk.astype(np.float32), count=np.minimum(used, 65535).astype(np.uint16),
         last_dt_s=last_dt, region=region,
-        xr_elevation=(xe - z).astype(np.float32), xr_risk=xr.astype(np.float32), xr_confidence=xc.astype(np.float32),
+        xr_elevation=(xe - z).astype(np.float32), xr_risk=xr.astype(np.float32), xr_confidence=xr_conf,
     )
 
 
@@ -195,7 +205,8 @@ def naive_fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) 
 # elevation sums in integer micrometres: exact under any order of adds and subtracts, so
 # a drive fused in time chunks gives bit-identical labels to one pass
 SUM_SCALE = 1e6
-_SLIDE = {"sum": ("int64", 0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1), "lstamp": ("int64", -1)}
+_SLIDE = {"sum": ("int64", 0), "cnt": ("int32", 0), "risk": ("float32", np.nan), "rstamp": ("int64", -1)}
+_LAST = {"lstamp": ("int64", -1)}  # the last observation's stamp: a QA grid's
 _GROUND = {"gsum": ("int64", 0), "gcnt": ("int32", 0)}  # rule ground: sums of the ground observations
 _MAX = {"max": ("float32", -np.inf)}
 
@@ -209,7 +220,7 @@ class _Sliding:
 
     def __init__(self, maps: MapSource, p: FuseParams) -> None:
         self.maps, self.p = maps, p
-        self.atlas = Atlas(p.tile, {**_SLIDE, **_GROUND} if p.ground else _SLIDE)
+        self.atlas = Atlas(p.tile, {**_SLIDE, **(_LAST if p.qa else {}), **(_GROUND if p.ground else {})})
         self.next_add = 0
         self.added: list[int] = []  # added and not yet subtracted, in stamp order
 
@@ -233,7 +244,8 @@ class _Sliding:
                 robs = np.isfinite(r) & (c >= self.p.risk_min_conf)
                 d["risk"][slot][dst] = np.where(robs, r, d["risk"][slot][dst])
                 d["rstamp"][slot][dst] = np.where(robs, t, d["rstamp"][slot][dst])
-                d["lstamp"][slot][dst] = np.where(obs, t, d["lstamp"][slot][dst])
+                if self.p.qa:
+                    d["lstamp"][slot][dst] = np.where(obs, t, d["lstamp"][slot][dst])
 
     def advance(self, a: int, b: int) -> None:
         """Move the window to [a, b] (both never decrease)."""
@@ -249,16 +261,17 @@ class _Sliding:
 
     def gather(self, I: NDArray, J: NDArray, a: int) -> tuple[NDArray, ...]:
         """Return (sum, count, risk, last stamp, ground sum, ground count) at lattice cells
-        (I, J) for a window starting at ``a`` (the ground ones None under rule ``mean``)."""
-        names = ("sum", "cnt", "risk", "rstamp", "lstamp") + (("gsum", "gcnt") if self.p.ground else ())
-        isum, cnt, risk, rstamp, lstamp, *ground = self.atlas.gather(I, J, names)  # one lookup of the cells' tiles
-        ssum = isum / SUM_SCALE
-        risk = np.where(rstamp >= a, risk, np.nan)
-        lstamp = np.where(lstamp >= a, lstamp, -1)
+        (I, J) for a window starting at ``a`` (the last stamp None without the QA grids, the
+        ground ones None under rule ``mean``)."""
+        names = ("sum", "cnt", "risk", "rstamp") + (("lstamp",) if self.p.qa else ()) + (("gsum", "gcnt") if self.p.ground else ())
+        got = dict(zip(names, self.atlas.gather(I, J, names)))  # one lookup of the cells' tiles
+        ssum = got["sum"] / SUM_SCALE
+        risk = np.where(got["rstamp"] >= a, got["risk"], np.nan)
+        lstamp = np.where(got["lstamp"] >= a, got["lstamp"], -1) if self.p.qa else None
         gsum = gcnt = None
-        if ground:
-            gsum, gcnt = ground[0] / SUM_SCALE, ground[1]
-        return ssum, cnt, risk, lstamp, gsum, gcnt
+        if self.p.ground:
+            gsum, gcnt = got["gsum"] / SUM_SCALE, got["gcnt"]
+        return ssum, got["cnt"], risk, lstamp, gsum, gcnt
 
 
 def _max_splat(atlas: Atlas, m: LatticeMap) -> None:
@@ -276,12 +289,29 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
     bounds = {k: window_bounds(samples[k], maps, p) for k in order}
     if any(bounds[order[i]][0] > bounds[order[i + 1]][0] for i in range(len(order) - 1)):
         raise ValueError("window starts must not decrease with sample time: each sample's current map must be the latest map stamped <= t")
+    sliding = _Sliding(maps, p)
+    cells = _window_maxima(maps, samples, order, bounds, p.tile) if p.qa else ((k, *_cells(samples[k]), None) for k in order)
+    for k, I, J, cmax in cells:
+        a, b = bounds[k]
+        sliding.advance(a, b)
+        ssum, cnt, risk, last, gsum, gcnt = sliding.gather(I, J, a)
+        yield k, _finish(samples[k], I, J, maps, p, ssum, cnt, risk, last, cmax, gsum, gcnt)
+
+
+def _cells(s: SampleGrid) -> tuple[NDArray, NDArray]:
+    """Return the lattice indices (I, J) of sample ``s``'s target grid."""
+    return target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
+
+
+def _window_maxima(maps: MapSource, samples: list[SampleGrid], order: list[int], bounds: dict[int, tuple[int, int]],
+                   tile: int) -> Iterator[tuple[int, NDArray, NDArray, NDArray]]:
+    """Yield (k, I, J, max confidence over sample k's window at its cells) in ``order``
+    (time order, window starts not decreasing)."""
     # blocks as long as the shortest window: every window [a, b] is then the suffix
     # [a, end of a's block) plus the prefix [end of a's block, b]
     L = max(min(b - a for a, b in bounds.values()), 1)
     t0 = bounds[order[0]][0]
     t = maps.t_ns
-    sliding = _Sliding(maps, p)
     g_start = 0
     while g_start < len(order):
         kblk = (bounds[order[g_start]][0] - t0) // L
@@ -291,7 +321,7 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
         group = order[g_start:g_end]
         lo, mid = t0 + kblk * L, t0 + (kblk + 1) * L
         # suffix maxima within the block, from its end backwards
-        atlas = Atlas(p.tile, _MAX)
+        atlas = Atlas(tile, _MAX)
         in_blk = np.nonzero((t >= lo) & (t < mid))[0][::-1]
         pos = 0
         # only the float32 suffix maxima wait for the forward pass (memory: one grid per
@@ -301,22 +331,17 @@ def fuse_range(maps: MapSource, samples: list[SampleGrid], p: FuseParams) -> Ite
             while pos < len(in_blk) and t[in_blk[pos]] >= bounds[k][0]:
                 _max_splat(atlas, maps[int(in_blk[pos])])
                 pos += 1
-            s = samples[k]
-            suffix[k] = atlas.gather(*target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw), ("max",))[0]
+            suffix[k] = atlas.gather(*_cells(samples[k]), ("max",))[0]
         del atlas
         # prefix maxima after the block, forwards; samples leave in time order (= b order)
-        atlas = Atlas(p.tile, _MAX)
+        atlas = Atlas(tile, _MAX)
         nxt = np.nonzero(t >= mid)[0]
         pos = 0
         for k in group:
-            a, b = bounds[k]
+            b = bounds[k][1]
             while pos < len(nxt) and t[nxt[pos]] <= b:
                 _max_splat(atlas, maps[int(nxt[pos])])
                 pos += 1
-            s = samples[k]
-            I, J = target_lattice_index(s.size, s.res, s.res, s.pos, s.yaw)
-            cmax = np.fmax(suffix.pop(k), atlas.gather(I, J, ("max",))[0])
-            sliding.advance(a, b)
-            ssum, cnt, risk, last, gsum, gcnt = sliding.gather(I, J, a)
-            yield k, _finish(samples[k], I, J, maps, p, ssum, cnt, risk, last, cmax, gsum, gcnt)
+            I, J = _cells(samples[k])
+            yield k, I, J, np.fmax(suffix.pop(k), atlas.gather(I, J, ("max",))[0])
         g_start = g_end

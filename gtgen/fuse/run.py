@@ -17,7 +17,7 @@ from gtgen.runtime.output import stage_output
 from gtgen.runtime.pool import Pool
 from gtgen.runtime.progress import track
 from gtgen.storage.drive import DriveStore
-from gtgen.storage.fused import FusedWriter
+from gtgen.storage.fused import FusedWriter, layers
 
 log = logging.getLogger(__name__)
 
@@ -53,18 +53,21 @@ def sample_grids(drive: DriveStore, rng: str, size: int, res: float) -> list[Sam
             for k in range(len(s))]
 
 
-def params(cfg: GtgenConfig) -> FuseParams:
-    """Return the fusion parameters of ``cfg``."""
+def params(cfg: GtgenConfig, rng: str | None = None) -> FuseParams:
+    """Return the fusion parameters of ``cfg`` for range ``rng``: its QA grids are computed
+    only if the dataset stores them (``shards.qa_ranges``; every range when ``rng`` is None)."""
     f = cfg.fuse
     return FuseParams(int(round(f.window_s * 1e9)), int(round(f.past_s * 1e9)), f.min_conf, f.risk_min_conf, f.tile_cells,
-                      f.elevation_rule, f.top_height_m, f.top_footprint_m)
+                      f.elevation_rule, f.top_height_m, f.top_footprint_m, qa=rng is None or rng in cfg.shards.qa_ranges)
 
 
-def _layers(f: Fused) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Return a fused sample's label layers and X-Racer layers by their store names."""
+def _layers(f: Fused, rng: str, qa_ranges: list[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Return a fused sample's label layers and X-Racer layers of range ``rng`` by their
+    store names: those the store holds (the QA grids only for ``qa_ranges``)."""
     labels = {"elevation_m": f.elevation, "confidence": f.confidence, "risk": f.risk, "count": f.count,
               "last_dt_s": f.last_dt_s, "region": f.region}
-    return labels, {"elevation_m": f.xr_elevation, "risk": f.xr_risk, "confidence": f.xr_confidence}
+    xracer = {"elevation_m": f.xr_elevation, "risk": f.xr_risk, "confidence": f.xr_confidence}
+    return ({k: labels[k] for k in layers("fused", rng, qa_ranges)}, {k: xracer[k] for k in layers("xracer", rng, qa_ranges)})
 
 
 def _fuse_part(drive: DriveStore, out_path: str, rng: str, lo: int, hi: int, cfg: GtgenConfig) -> tuple[str, int, np.ndarray, np.ndarray, int]:
@@ -79,8 +82,8 @@ def _fuse_part(drive: DriveStore, out_path: str, rng: str, lo: int, hi: int, cfg
     samples = sample_grids(drive, rng, grid.size, grid.resolution_m)[lo:hi]
     empty = np.zeros(len(samples), bool)
     regions = np.zeros(len(codes.REGIONS), np.int64)
-    for k, f in track(fuse_range(maps, samples, params(cfg)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
-        out.write_sample(rng, lo + k, *_layers(f))
+    for k, f in track(fuse_range(maps, samples, params(cfg, rng)), f"fuse: {rng} {lo}..{hi}", total=len(samples)):
+        out.write_sample(rng, lo + k, *_layers(f, rng, cfg.shards.qa_ranges))
         empty[k] = not f.count.any()
         regions += np.bincount(f.region.ravel(), minlength=len(codes.REGIONS))
     return rng, lo, empty, regions, maps.loads
@@ -98,7 +101,7 @@ def run_fuse(drive_path: Path, out: Path, cfg: GtgenConfig, workers: int = 2, ov
         if S == 0:
             raise StoreError(f"drive store '{drive_path}' has no samples")
         writer = FusedWriter(tmp)
-        writer.create_grids(S, {r: cfg.grids.get(r).size for r in RANGES})
+        writer.create_grids(S, {r: cfg.grids.get(r).size for r in RANGES}, cfg.shards.qa_ranges)
         result = _summarise(out, S, _fuse_all(drive, tmp, cfg, S, workers))
         writer.finish(result.reason, gtgen_version=__version__, drive=str(drive_path.resolve()), drive_bags=drive.bags,
                       drive_identity=drive.identity,

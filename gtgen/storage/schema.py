@@ -118,8 +118,9 @@ for _r in RANGES:
         ArraySpec(f"xracer/{_r}/risk", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer risk at t", codec="lz4"),
         ArraySpec(f"xracer/{_r}/confidence", "float32", "(S, n, n)", "0..1", _f, "NaN", "X-Racer confidence at t", codec="lz4"),
     ]
-FUSED = StoreFormat("gtgen-fused", 3, tuple(_FUSED), "gtgen fuse",
-                    "re-run 'gtgen fuse DRIVE --overwrite' (version 3 stores the float grids with lz4, faster to write and read)",
+FUSED = StoreFormat("gtgen-fused", 4, tuple(_FUSED), "gtgen fuse",
+                    "re-run 'gtgen fuse DRIVE --overwrite' (version 4 computes and stores the QA-only grids only for "
+                    "shards.qa_ranges)",
                     config_sections=("grids", "topics", "extract", "mapping", "fuse"))
 
 
@@ -217,6 +218,16 @@ READ_BY = {
 def qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
     """Return the paths of the QA grids of ``ranges``."""
     return tuple(f"{k}/{r}/{layer}" for k, layers in QA_GRIDS.items() for r in ranges for layer in layers)
+
+
+# the fused store's grids the dataset's QA grids come from (the fused labels are its
+# "labels"): fuse computes and writes them only for shards.qa_ranges
+FUSED_QA = {"fused": QA_GRIDS["labels"], "xracer": QA_GRIDS["xracer"]}
+
+
+def fused_qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
+    """Return the paths of the fused store's QA grids of ``ranges``."""
+    return tuple(f"{k}/{r}/{layer}" for k, layers in FUSED_QA.items() for r in ranges for layer in layers)
 
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
