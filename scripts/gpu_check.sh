@@ -16,7 +16,9 @@ ROOT=$(cd "$(dirname "$0")/.." && pwd)
 PY=${PYTHON:-$ROOT/.venv/bin/python}
 OUT=$(mkdir -p "${GPU_CHECK_OUT:-gpu_check}" && cd "${GPU_CHECK_OUT:-gpu_check}" && pwd)
 DATASET=${1:-}
-if "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+# no GPU driver's tool (nvidia-smi, or rocm-smi for torch's ROCm build): the CPU mode,
+# without importing torch (2 s) to ask it
+if { command -v nvidia-smi || command -v rocm-smi; } > /dev/null && "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
   MODE=gpu PRESET=paper DEVICE=cuda STEPS=${GPU_CHECK_STEPS:-300}
   printf 'train: {val_every: 100, ckpt_every: 100%s}\n' "${GPU_CHECK_WEIGHTS:+, backbone_weights: $GPU_CHECK_WEIGHTS}" > "$OUT/check.yaml"
 else

@@ -63,7 +63,7 @@ def test_overfitting_a_fixed_batch(dataset):
     model = build_model(cfg.train, ds.data_cfg)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
-    for _ in range(300):  # one thread per test process: 150 steps ended at 0.105 of the first loss
+    for _ in range(220):  # one thread per test process: the loss at 0.144, 0.091, 0.080, 0.061 of the first after 100, 150, 200, 250 steps
         loss, _ = total_loss(model(batch), batch, cfg.train)
         opt.zero_grad()
         loss.backward()
