@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 from bagtools import split_mcap
-from conftest import SMALL, run_cli, small_config
+from conftest import SMALL, run_cli, shared, small_config
 from gtgen.synth import run_synth
 from pipelines.build_dataset import build_dataset
 
@@ -23,16 +23,19 @@ ARRAYS = ("labels/micro/elevation_m", "labels/short/region", "labels/short/risk"
           "meta/T_crs_target", "inputs/jpeg", "inputs/voxel_points_m", "inputs/voxel_offsets", "rejected/reason")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def drives(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("drives")
-    for name, seed in (("a", 0), ("b", 1), ("c", 2)):
-        run_synth(small_config(synth={"duration_s": 3.0, "seed": seed, "formats": "mcap"}), root / name)
-    # drive c arrives as two bags
-    c = root / "c"
-    split_mcap(c / "drive.mcap", c / "part_0.mcap", c / "part_1.mcap", 1.5)
-    (c / "drive.mcap").unlink()
-    return root
+    """Three small drives, read and never changed (one copy for both xdist workers)."""
+
+    def build(root: Path) -> None:
+        for name, seed in (("a", 0), ("b", 1), ("c", 2)):
+            run_synth(small_config(synth={"duration_s": 3.0, "seed": seed, "formats": "mcap"}), root / name)
+        # drive c arrives as two bags
+        c = root / "c"
+        split_mcap(c / "drive.mcap", c / "part_0.mcap", c / "part_1.mcap", 1.5)
+        (c / "drive.mcap").unlink()
+
+    return shared(tmp_path_factory, "pipelines/drives", build)
 
 
 def _arrays(path: Path) -> dict[str, np.ndarray]:
