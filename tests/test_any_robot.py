@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import REALDATA, SMALL, needs_realdata, run_cli, small_config
+from conftest import REALDATA, SMALL, needs_realdata, run_cli, shared, small_config
 from gtgen.config import CAMERAS, build_config, load_config
 from gtgen.errors import ConfigError
 
@@ -59,27 +59,31 @@ def test_cli_refuses_no_dem_beside_dem_and_a_ninth_camera(tmp_path):
     assert p.returncode != 0 and "names 9 cameras" in p.stderr and len(p.stderr.strip().splitlines()) == 1
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def blind(tmp_path_factory) -> tuple[Path, Path]:
     """A drive without cameras whose samples snap to its one slow lidar (2 Hz), extracted,
-    fused and placed without a DEM; returns (its config file, the dataset)."""
+    fused and placed without a DEM; returns (its config file, the dataset); read only, one
+    copy for both xdist workers."""
     from gtgen.dataset.dem_align import run_dem_align
     from gtgen.extract import run_extract
     from gtgen.fuse.run import run_fuse
     from gtgen.synth import run_synth
 
-    root = tmp_path_factory.mktemp("blind")
     layer = {"topics": {"cameras": {}, "lidar": ["/lidar/front/points"]}, "synth": {"scan_rate_hz": 2.0, "formats": "mcap"}}
-    cfg = small_config(**layer)
-    run_synth(cfg, root / "drive")
-    ws = root / "gtgen_ws"
-    run_extract([root / "drive" / "drive.mcap"], ws / "drive.zarr", cfg, workers=1)
-    run_fuse(ws / "drive.zarr", ws / "fused.zarr", cfg, workers=1)
-    nodem = cfg.model_copy(update={"dem": cfg.dem.model_copy(update={"enabled": False})})
-    run_dem_align(ws / "drive.zarr", ws / "fused.zarr", None, ws / "dataset.zarr", nodem, workers=1)
-    conf = root / "blind.yaml"
-    conf.write_text(yaml.safe_dump({**yaml.safe_load(SMALL.read_text()), **{"topics": layer["topics"]}, **TINY}))
-    return conf, ws / "dataset.zarr"
+
+    def build(root: Path) -> None:
+        root.mkdir(parents=True)
+        cfg = small_config(**layer)
+        run_synth(cfg, root / "drive")
+        ws = root / "gtgen_ws"
+        run_extract([root / "drive" / "drive.mcap"], ws / "drive.zarr", cfg, workers=1)
+        run_fuse(ws / "drive.zarr", ws / "fused.zarr", cfg, workers=1)
+        nodem = cfg.model_copy(update={"dem": cfg.dem.model_copy(update={"enabled": False})})
+        run_dem_align(ws / "drive.zarr", ws / "fused.zarr", None, ws / "dataset.zarr", nodem, workers=1)
+        (root / "blind.yaml").write_text(yaml.safe_dump({**yaml.safe_load(SMALL.read_text()), **{"topics": layer["topics"]}, **TINY}))
+
+    root = shared(tmp_path_factory, "any_robot/blind", build)
+    return root / "blind.yaml", root / "gtgen_ws" / "dataset.zarr"
 
 
 def test_a_drive_without_cameras_snaps_to_the_lidar_and_holds_no_images(blind):
@@ -131,10 +135,15 @@ def test_experiments_on_a_dataset_without_cameras_skip_the_camera_rows(blind):
     assert ex._plan(True, tables.parse_tables("I"), cameras=True).no_cameras == []
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def one_camera(tmp_path_factory) -> Path:
-    """A drive of one camera (gtgen synth --cameras 1: front) through the chain with its DEM."""
-    root = tmp_path_factory.mktemp("one")
+    """A drive of one camera (gtgen synth --cameras 1: front) through the chain with its DEM
+    (read only: one copy for both xdist workers)."""
+    return shared(tmp_path_factory, "any_robot/one", _one_camera) / "gtgen_ws" / "dataset.zarr"
+
+
+def _one_camera(root: Path) -> None:
+    root.mkdir(parents=True)
     conf = root / "small.yaml"
     conf.write_text(yaml.safe_dump({**yaml.safe_load(SMALL.read_text()), **TINY}))
     p = run_cli("synth", root / "d", "--cameras", "1", "--format", "mcap", "--config", conf, cwd=root)
@@ -146,7 +155,6 @@ def one_camera(tmp_path_factory) -> Path:
                  ("fuse", "--workers", "1", "--config", root / "d" / "gtgen-config.yaml"), ("dem-align", "--config", root / "d" / "gtgen-config.yaml")):
         p = run_cli(*args, cwd=root)
         assert p.returncode == 0, p.stderr
-    return root / "gtgen_ws" / "dataset.zarr"
 
 
 def test_one_camera_trains_and_a_checkpoint_of_another_rig_is_refused(one_camera, dataset, tmp_path):

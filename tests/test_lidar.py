@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REALDATA, needs_realdata, small_config
+from conftest import REALDATA, needs_realdata, shared, small_config
 from test_train import SMALL_TRAIN
 
 HDL64 = REALDATA / "swri_hdl64_single_scan.bag"
@@ -23,20 +23,23 @@ def scan_cfg():
     return small_config(**SCANS)
 
 
-@pytest.fixture(scope="module")
-def scan_dataset(tmp_path_factory, scan_cfg) -> Path:
-    """A small drive with raw scans, through synth, extract, fuse and dem-align."""
+@pytest.fixture(scope="session")
+def scan_dataset(tmp_path_factory) -> Path:
+    """A small drive with raw scans, through synth, extract, fuse and dem-align (read only:
+    one copy for both xdist workers)."""
     from gtgen.dataset.dem_align import run_dem_align
     from gtgen.extract import run_extract
     from gtgen.fuse.run import run_fuse
     from gtgen.synth import run_synth
 
-    base = tmp_path_factory.mktemp("scans")
-    run_synth(scan_cfg, base / "drive")
-    run_extract([base / "drive" / "drive.mcap"], base / "drive.zarr", scan_cfg, workers=1)
-    run_fuse(base / "drive.zarr", base / "fused.zarr", scan_cfg, workers=1)
-    run_dem_align(base / "drive.zarr", base / "fused.zarr", None, base / "dataset.zarr", scan_cfg, workers=1)
-    return base
+    def build(base: Path) -> None:
+        cfg = small_config(**SCANS)
+        run_synth(cfg, base / "drive")
+        run_extract([base / "drive" / "drive.mcap"], base / "drive.zarr", cfg, workers=1)
+        run_fuse(base / "drive.zarr", base / "fused.zarr", cfg, workers=1)
+        run_dem_align(base / "drive.zarr", base / "fused.zarr", None, base / "dataset.zarr", cfg, workers=1)
+
+    return shared(tmp_path_factory, "lidar/scans", build)
 
 
 # -- the real HDL-64E scan ------------------------------------------------------------
