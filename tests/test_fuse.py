@@ -95,14 +95,14 @@ def test_without_qa_ranges_fuse_stores_no_qa_grid_and_the_same_dataset(drive_sto
 
     from gtgen.dataset.dem_align import run_dem_align
     from gtgen.errors import ConfigError
-    from gtgen.storage.schema import fused_qa_paths, qa_paths
+    from gtgen.storage.schema import FUSED_QA, qa_paths
 
     lean_cfg = cfg.model_copy(update={"shards": cfg.shards.model_copy(update={"qa_ranges": []})})
     run_fuse(drive_store, tmp_path / "lean.zarr", lean_cfg, workers=1)
     full, lean = zarr.open_group(str(fused_store), mode="r"), zarr.open_group(str(tmp_path / "lean.zarr"), mode="r")
     assert lean.attrs["qa_ranges"] == [] and full.attrs["qa_ranges"] == ["micro", "short"]
     names = {k for k, _ in lean.members(max_depth=None) if isinstance(_, zarr.Array)}
-    assert names and not names & set(fused_qa_paths()) and names | set(fused_qa_paths()) >= {k for k, a in full.members(max_depth=None) if isinstance(a, zarr.Array)}
+    assert names and not names & set(qa_paths(grids=FUSED_QA)) and names | set(qa_paths(grids=FUSED_QA)) >= {k for k, a in full.members(max_depth=None) if isinstance(a, zarr.Array)}
     for name in names:
         np.testing.assert_array_equal(full[name][:], lean[name][:], err_msg=name)
     with pytest.raises(ConfigError, match=r"asks for the QA grids of \['micro', 'short'\].*run 'gtgen fuse' again") as err:

@@ -215,19 +215,15 @@ READ_BY = {
 }
 
 
-def qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
-    """Return the paths of the QA grids of ``ranges``."""
-    return tuple(f"{k}/{r}/{layer}" for k, layers in QA_GRIDS.items() for r in ranges for layer in layers)
+def qa_paths(ranges: Any = RANGES, grids: dict[str, tuple[str, ...]] = QA_GRIDS) -> tuple[str, ...]:
+    """Return the paths of the QA grids of ``ranges`` (of a dataset; ``grids=FUSED_QA``: of
+    a fused store)."""
+    return tuple(f"{k}/{r}/{layer}" for k, layers in grids.items() for r in ranges for layer in layers)
 
 
 # the fused store's grids the dataset's QA grids come from (the fused labels are its
 # "labels"): fuse computes and writes them only for shards.qa_ranges
 FUSED_QA = {"fused": QA_GRIDS["labels"], "xracer": QA_GRIDS["xracer"]}
-
-
-def fused_qa_paths(ranges: Any = RANGES) -> tuple[str, ...]:
-    """Return the paths of the fused store's QA grids of ``ranges``."""
-    return tuple(f"{k}/{r}/{layer}" for k, layers in FUSED_QA.items() for r in ranges for layer in layers)
 
 
 # the arrays with one row per sample (sharded along the sample axis); the N-scan input's
