@@ -201,8 +201,12 @@ def test_a_worker_holds_off_ctrl_c_from_its_first_instruction():
 
 
 POOL_SCRIPT = """
-import os, sys, time
+import os, signal, sys, time
 from gtgen.runtime.pool import Pool
+
+# as from a terminal: a shell's background job (``cmd &``) starts with SIGINT ignored,
+# which Python then keeps, and the Ctrl-C case would wait for the busy workers' minute
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def busy(x):
     t = time.time()
