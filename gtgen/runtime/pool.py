@@ -1,10 +1,13 @@
 """The one process pool of gtgen (extract, fuse, dem-align and the build run on it), and
 bounded background threads for I/O.
 
-Workers are spawned, never forked: the parent may hold open stores, threads and
-open3d's thread pool. Each spawned worker gets one OpenMP / BLAS thread (unless the
-user set those variables): the pool already keeps every core busy, and nested threads
-only contend.
+Workers are never forked from the parent, which may hold open stores, threads and
+open3d's thread pool: they are forked from a fork server (Python's ``forkserver``), a
+clean interpreter started once per process that has imported numpy, zarr and gtgen's
+storage, so a worker starts in milliseconds instead of importing them again as a spawned
+one does (about a second of CPU each; where there is no fork server, workers are spawned).
+Each worker gets one OpenMP / BLAS thread (unless the user set those variables): the pool
+already keeps every core busy, and nested threads only contend.
 """
 
 from __future__ import annotations
@@ -21,55 +24,94 @@ from gtgen.runtime.progress import track
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
-ORPHAN_CHECK_S = 2.0  # how often a worker looks whether the process that started it still lives
+# what the fork server imports once for every worker it forks: what every stage's jobs use
+# (a job's own module is imported by the worker that first runs it)
+PRELOAD = ("numpy", "zarr", "gtgen.storage.stores", "gtgen.grids", "gtgen.geometry")
 
 
-def _start_worker(parent: int, init: Callable[..., Any] | None, args: tuple) -> None:
+def _start_worker(init: Callable[..., Any] | None, args: tuple) -> None:
     """Set up a worker: Ctrl-C is the parent's to handle (it stops the workers; a worker
-    of its own would print a traceback for it), the worker ends when the parent is gone
-    (killed, say: it would otherwise wait for jobs forever), then ``init(*args)``. The
-    worker was started with SIGINT blocked (``_QuietSpawnProcess``): it is ignored before
-    it is unblocked, so a Ctrl-C during start-up is dropped here too."""
+    of its own would print a traceback for it), the worker ends when the process that
+    owns the pool is gone (killed, say: it would otherwise wait for jobs forever), then
+    ``init(*args)``. The worker was started with SIGINT blocked (``_blocked_sigint``): it
+    is ignored before it is unblocked, so a Ctrl-C during start-up is dropped here too."""
     import faulthandler
+    import multiprocessing
     import threading
-    import time
+    from multiprocessing.connection import wait
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     faulthandler.enable()  # a worker that crashes in native code prints where, above the pool's one-line error
+    owner = multiprocessing.parent_process()  # the pool's process (not the fork server), its pipe's end
 
     def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(ORPHAN_CHECK_S)
+        wait([owner.sentinel])  # readable once the owner's end of the pipe is closed: it has exited
         os._exit(1)
 
-    threading.Thread(target=watch, daemon=True, name="gtgen-orphan-watch").start()
+    if owner is not None:
+        threading.Thread(target=watch, daemon=True, name="gtgen-orphan-watch").start()
     if init is not None:
         init(*args)
+
+
+class _blocked_sigint:
+    """Block SIGINT in this thread for the ``with`` block: a process started meanwhile
+    inherits the mask (through fork and exec), and keeps the signal pending until it
+    unblocks it; this process's own Ctrl-C is delivered when the mask is restored."""
+
+    def __enter__(self) -> None:
+        self.old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+    def __exit__(self, *exc: object) -> None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, self.old)
 
 
 class _QuietSpawnProcess(mpc.SpawnProcess):
     """A spawned worker that starts with SIGINT blocked: a Ctrl-C that reaches a worker
     while it starts (its interpreter boots for a second or more on a busy machine, before
     ``_start_worker`` can ignore the signal) would end it half-way, print its traceback
-    and break the pool the parent is stopping. The mask is the spawning thread's,
-    inherited through fork and exec; this process's own Ctrl-C stays pending for those
-    few milliseconds and is delivered when the mask is restored, never lost."""
+    and break the pool the parent is stopping."""
 
     def start(self) -> None:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
+        _tracker_running()
+        with _blocked_sigint():
             super().start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _tracker_running() -> None:
+    """Start multiprocessing's resource tracker now if it is not running: starting it
+    unblocks SIGINT (``pthread_sigmask(SIG_UNBLOCK)`` after its own block), which would
+    undo ``_blocked_sigint`` for the process started next."""
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
 
 
 class _QuietSpawnContext(mpc.SpawnContext):
     Process = _QuietSpawnProcess
 
 
+def _context() -> mpc.BaseContext:
+    """Return the workers' start method: the fork server, started with SIGINT blocked (its
+    workers inherit the mask, as ``_QuietSpawnProcess``'s do), or spawning where there is
+    no fork server (Windows)."""
+    import multiprocessing
+    from multiprocessing import forkserver
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return _QuietSpawnContext()
+    ctx = multiprocessing.get_context("forkserver")
+    _tracker_running()
+    with _blocked_sigint():
+        if forkserver._forkserver._forkserver_pid is None:  # its modules are fixed when it starts
+            ctx.set_forkserver_preload(["__main__", *PRELOAD])
+        forkserver.ensure_running()
+    return ctx
+
+
 class Pool:
-    """Runs jobs (picklable functions and arguments) on ``workers`` spawned processes;
+    """Runs jobs (picklable functions and arguments) on ``workers`` processes;
     with one worker, in this process. The pool lives until ``close``, so several rounds
     of jobs pay for worker start-up once.
 
@@ -102,8 +144,8 @@ class Pool:
             for k in THREAD_VARS:
                 os.environ.setdefault(k, "1")
             fn, args = init if init is not None else (None, ())
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=_QuietSpawnContext(),
-                                           initializer=_start_worker, initargs=(os.getpid(), fn, args))
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=_context(),
+                                           initializer=_start_worker, initargs=(fn, args))
             if warm is not None:
                 for _ in range(self.workers):
                     self._ex.submit(warm)
