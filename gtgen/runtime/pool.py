@@ -106,8 +106,20 @@ def _context() -> mpc.BaseContext:
     with _blocked_sigint():
         if forkserver._forkserver._forkserver_pid is None:  # its modules are fixed when it starts
             ctx.set_forkserver_preload(["__main__", *PRELOAD])
+            global _STOP_REGISTERED
+            if not _STOP_REGISTERED:
+                import atexit
+
+                # stopped and waited for at exit (Python leaves it to end unwaited): its
+                # workers' CPU time and peak memory then count as this process's children's,
+                # in `time`, rusage and the benchmarks, as spawned workers' did
+                atexit.register(forkserver._forkserver._stop)
+                _STOP_REGISTERED = True
         forkserver.ensure_running()
     return ctx
+
+
+_STOP_REGISTERED = False
 
 
 class Pool:
