@@ -17,6 +17,7 @@ import os
 import signal
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from contextlib import contextmanager
 from typing import Any
 
 from gtgen.errors import WorkerDiedError
@@ -33,7 +34,7 @@ def _start_worker(init: Callable[..., Any] | None, args: tuple) -> None:
     """Set up a worker: Ctrl-C is the parent's to handle (it stops the workers; a worker
     of its own would print a traceback for it), the worker ends when the process that
     owns the pool is gone (killed, say: it would otherwise wait for jobs forever), then
-    ``init(*args)``. The worker was started with SIGINT blocked (``_blocked_sigint``): it
+    ``init(*args)``. The worker was started with SIGINT blocked (``_sigint_blocked``): it
     is ignored before it is unblocked, so a Ctrl-C during start-up is dropped here too."""
     import faulthandler
     import multiprocessing
@@ -55,16 +56,22 @@ def _start_worker(init: Callable[..., Any] | None, args: tuple) -> None:
         init(*args)
 
 
-class _blocked_sigint:
+@contextmanager
+def _sigint_blocked() -> Iterator[None]:
     """Block SIGINT in this thread for the ``with`` block: a process started meanwhile
     inherits the mask (through fork and exec), and keeps the signal pending until it
-    unblocks it; this process's own Ctrl-C is delivered when the mask is restored."""
+    unblocks it; this process's own Ctrl-C is delivered when the mask is restored.
+    multiprocessing's resource tracker is started first if it is not running: starting it
+    unblocks SIGINT (``pthread_sigmask(SIG_UNBLOCK)`` after its own block), which would
+    undo the block for the process started next."""
+    from multiprocessing import resource_tracker
 
-    def __enter__(self) -> None:
-        self.old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-
-    def __exit__(self, *exc: object) -> None:
-        signal.pthread_sigmask(signal.SIG_SETMASK, self.old)
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class _QuietSpawnProcess(mpc.SpawnProcess):
@@ -74,18 +81,8 @@ class _QuietSpawnProcess(mpc.SpawnProcess):
     and break the pool the parent is stopping."""
 
     def start(self) -> None:
-        _tracker_running()
-        with _blocked_sigint():
+        with _sigint_blocked():
             super().start()
-
-
-def _tracker_running() -> None:
-    """Start multiprocessing's resource tracker now if it is not running: starting it
-    unblocks SIGINT (``pthread_sigmask(SIG_UNBLOCK)`` after its own block), which would
-    undo ``_blocked_sigint`` for the process started next."""
-    from multiprocessing import resource_tracker
-
-    resource_tracker.ensure_running()
 
 
 class _QuietSpawnContext(mpc.SpawnContext):
@@ -102,24 +99,17 @@ def _context() -> mpc.BaseContext:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return _QuietSpawnContext()
     ctx = multiprocessing.get_context("forkserver")
-    _tracker_running()
-    with _blocked_sigint():
+    with _sigint_blocked():
         if forkserver._forkserver._forkserver_pid is None:  # its modules are fixed when it starts
-            ctx.set_forkserver_preload(["__main__", *PRELOAD])
-            global _STOP_REGISTERED
-            if not _STOP_REGISTERED:
-                import atexit
+            import atexit
 
-                # stopped and waited for at exit (Python leaves it to end unwaited): its
-                # workers' CPU time and peak memory then count as this process's children's,
-                # in `time`, rusage and the benchmarks, as spawned workers' did
-                atexit.register(forkserver._forkserver._stop)
-                _STOP_REGISTERED = True
+            ctx.set_forkserver_preload(["__main__", *PRELOAD])
+            # stopped and waited for at exit (Python leaves it to end unwaited): its workers'
+            # CPU time and peak memory then count as this process's children's, in `time`,
+            # rusage and the benchmarks, as spawned workers' did (a second stop is a no-op)
+            atexit.register(forkserver._forkserver._stop)
         forkserver.ensure_running()
     return ctx
-
-
-_STOP_REGISTERED = False
 
 
 class Pool:
