@@ -198,25 +198,30 @@ def filled(grid: NDArray, max_sigma_cells: float = 4.0) -> NDArray[np.float32]:
     if not ok.any():
         return np.zeros(grid.shape, np.float32)
     n = grid.shape[0]
-    level_wv = np.stack([ok.astype(np.float64), np.where(ok, grid, 0.0).astype(np.float64)])
+    level_wv = np.empty((2, *grid.shape))  # (weight, weighted value) of the current level
+    level_wv[0] = ok
+    level_wv[1] = np.where(ok, grid, 0.0)
     out = np.where(ok, grid, np.nan).astype(np.float64)  # the valid cells are done
+    todo = ~ok  # the cells no scale has reached yet
     sigma, level = 1.0, 0
-    while (rows := np.flatnonzero(np.isnan(out).any(axis=1))).size and sigma <= 2 * max(grid.shape):
+    while (rows := np.flatnonzero(todo.any(axis=1))).size and sigma <= 2 * max(grid.shape):
         while sigma / 2**level > max_sigma_cells and level_wv.shape[1] > 4:
             level_wv = _pool2(level_wv)
             level += 1
-        smooth = np.stack([gaussian_filter(x, sigma / 2**level, mode="constant", truncate=3.0) for x in level_wv])
+        # both planes in one call: the same 1-D passes, in the same order, as one filter each
+        smooth = gaussian_filter(level_wv, sigma / 2**level, mode="constant", truncate=3.0, axes=(1, 2))
         if level:  # the level's cells at the fine cell centres, on the rows still holding an empty cell
             x = (np.arange(n) + 0.5) / 2**level - 0.5
             den, num = bilinear(smooth, x[rows][:, None], x[None, :], outside="edge")
         else:
             den, num = smooth[:, rows]
+        reach = todo[rows] & (den > 1e-3)
         sub = out[rows]
-        reach = np.isnan(sub) & (den > 1e-3)
         sub[reach] = num[reach] / den[reach]
         out[rows] = sub
+        todo[rows] &= ~reach
         sigma *= 2
-    out[np.isnan(out)] = float(grid[ok].mean())
+    out[todo] = float(grid[ok].mean())
     out[ok] = grid[ok]
     return out.astype(np.float32)
 

@@ -225,27 +225,36 @@ class _Sliding:
         self.added: list[int] = []  # added and not yet subtracted, in stamp order
 
     def _splat(self, i: int, sign: int) -> None:
+        """Add (``sign`` +1) or subtract (-1) map ``i`` into the lattice tiles it covers.
+
+        Its observations and their integer sums are made once over the whole map, then
+        added to or taken from each tile in place (the same integers as per tile)."""
         m = self.maps[i]
         t = int(m.t_ns)
         d = self.atlas.data
+        c = m.confidence
+        obs = np.isfinite(m.elevation)
+        obs &= c > self.p.min_conf
+        v = m.elevation * SUM_SCALE
+        np.rint(v, out=v)  # np.round's rounding (half to even)
+        v[~obs] = 0
+        ie = v.astype(np.int64)
         ground = ground_obs(m, self.p)
+        if ground is not None:
+            gie, gobs = np.where(ground, ie, 0), obs & ground
+        if sign > 0:
+            robs = np.isfinite(m.risk)
+            robs &= c >= self.p.risk_min_conf
+        add = np.add if sign > 0 else np.subtract
         for slot, dst, src in self.atlas.windows(m.i0, m.j0, *m.shape, t, create=sign > 0):
-            e, c = m.elevation[src], m.confidence[src]
-            obs = np.isfinite(e) & (c > self.p.min_conf)
-            ie = sign * np.where(obs, np.round(e * SUM_SCALE), 0).astype(np.int64)
-            d["sum"][slot][dst] += ie
-            d["cnt"][slot][dst] += sign * obs
-            if ground is not None:
-                g = ground[src]
-                d["gsum"][slot][dst] += np.where(g, ie, 0)
-                d["gcnt"][slot][dst] += sign * (obs & g)
+            for name, x in (("sum", ie), ("cnt", obs)) + ((("gsum", gie), ("gcnt", gobs)) if ground is not None else ()):
+                tile = d[name][slot][dst]
+                add(tile, x[src], out=tile)
             if sign > 0:
-                r = m.risk[src]
-                robs = np.isfinite(r) & (c >= self.p.risk_min_conf)
-                d["risk"][slot][dst] = np.where(robs, r, d["risk"][slot][dst])
-                d["rstamp"][slot][dst] = np.where(robs, t, d["rstamp"][slot][dst])
+                np.copyto(d["risk"][slot][dst], m.risk[src], where=robs[src])
+                np.copyto(d["rstamp"][slot][dst], t, where=robs[src])
                 if self.p.qa:
-                    d["lstamp"][slot][dst] = np.where(obs, t, d["lstamp"][slot][dst])
+                    np.copyto(d["lstamp"][slot][dst], t, where=obs[src])
 
     def advance(self, a: int, b: int) -> None:
         """Move the window to [a, b] (both never decrease)."""
