@@ -9,6 +9,7 @@ stores itself from a picklable ``Context``.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,7 +100,7 @@ def build_block(ctx: Context, start: int, items: list[Kept]) -> list[NDArray[np.
     for j, it in enumerate(items):
         pos, quat = s.pos_odom_m[it.k], s.quat_odom_xyzw[it.k]
         yaw = float(quat_to_yaw(quat))
-        sample = sample_arrays(fused.sample(it.k, DECODED), dem, it.T_crs_target, grids)
+        sample = sample_arrays(fused.sample(it.k, DECODED), dem, it.T_crs_target, grids, cfg.shards.qa_ranges)
         v = s.voxel_index[it.k]
         pts = vox[np.searchsorted(vs, v), : vox_n[v]].astype(np.float64)
         pts_t = ((pts - pos) @ yaw_transform(0, 0, 0, yaw)[:3, :3]).astype(np.float32)
@@ -140,18 +141,27 @@ def _inputs_and_meta(sample: DatasetSample, cfg: GtgenConfig, it: Kept, t_ns: in
     })
 
 
-def sample_arrays(fused: FusedSample, dem_source: DemSource | None, T_crs_target: NDArray, grids: dict) -> DatasetSample:
+def sample_arrays(fused: FusedSample, dem_source: DemSource | None, T_crs_target: NDArray, grids: dict,
+                  whole_dem: Collection[str] = RANGES) -> DatasetSample:
     """Return one sample's label, X-Racer and DEM grids from its fused grids (region and
     elevation as values, the rest as values or encoded chunks, which stay as they come:
-    the dataset holds them unchanged). Without a DEM (``dem_source`` None) its grids are
-    NaN and the unobserved cells are left unlabelled."""
+    the dataset holds them unchanged). The DEM grid of a range in ``whole_dem`` (the
+    ranges whose DEM the dataset stores, ``shards.qa_ranges``) is sampled at every cell,
+    of the others only at the unobserved cells the labels take it for (NaN elsewhere).
+    Without a DEM (``dem_source`` None) its grids are NaN and the unobserved cells are
+    left unlabelled."""
     out = DatasetSample({}, {}, {})
     for r in RANGES:
         X, Y = grids[r]
-        dem = dem_patch(dem_source, T_crs_target, X, Y) if dem_source is not None else np.full(X.shape, np.nan, np.float32)
         labels = dict(fused.labels[r])
         region, elev = labels["region"], labels["elevation_m"]
         unobs = region == codes.UNOBS
+        if dem_source is not None and r in whole_dem:
+            dem = dem_patch(dem_source, T_crs_target, X, Y)
+        else:
+            dem = np.full(X.shape, np.nan, np.float32)
+            if dem_source is not None:
+                dem[unobs] = dem_patch(dem_source, T_crs_target, X, Y, at=unobs)
         labels["elevation_m"] = np.where(unobs, dem, elev).astype(np.float32)
         region[unobs & ~np.isfinite(dem)] = codes.NO_LABEL
         out.labels[r] = labels

@@ -29,12 +29,17 @@ MIN_ICP_POINTS = 100
 COARSE = 3.0  # correspondence distance of the first pass from a drifted prior, in icp_max_distance_m
 
 
-def dem_patch(dem: DemSource, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0) -> NDArray[np.float32]:
-    """Return DEM heights in the target frame at target cells (X, Y) (NaN where no DEM)."""
+def dem_patch(dem: DemSource, T_crs_target: NDArray, X: NDArray, Y: NDArray, margin: float = 5.0,
+              at: NDArray[np.bool_] | None = None) -> NDArray[np.float32]:
+    """Return DEM heights in the target frame at target cells (X, Y) (NaN where no DEM), or
+    only at the cells ``at`` selects (1-D, in their order): the same values as the whole
+    patch's there (the DEM is read over the whole patch either way)."""
     R, t = T_crs_target[:3, :3], T_crs_target[:3, 3]
     E = R[0, 0] * X + R[0, 1] * Y + t[0]
     N = R[1, 0] * X + R[1, 1] * Y + t[1]
     grid, origin = dem.read(E.min() - margin, N.min() - margin, E.max() + margin, N.max() + margin)
+    if at is not None:
+        E, N = E[at], N[at]
     return sample_bilinear(grid, origin, E, N) - np.float32(t[2])
 
 
