@@ -193,7 +193,8 @@ class DrivePlacement:
         src = ground & (region == codes.OBS_PC)
         res = self._icp(k, src if src.sum() >= MIN_ICP_POINTS else ground, elev, dem, coarse=stale)
         T = T_prior @ res.T
-        aligned = dem_patch(self.dem, T, self.X, self.Y)
+        aligned = np.full(self.X.shape, np.nan, np.float32)  # read only on the ground cells (signals, tile counts)
+        aligned[ground] = dem_patch(self.dem, T, self.X, self.Y, at=ground)
         sig = {**self._signals(res, T, T_odom_target, t_ns, elev, ground, aligned), **extra}
         reason = self._decide(res, sig, dc.drift_allowance * age if self.chained else 0.0)
         if reason == codes.OK:
