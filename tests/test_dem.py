@@ -496,3 +496,24 @@ def test_the_track_puts_back_the_tile_whose_placements_stand_off_the_others(cfg)
     # too few samples over a tile: not judged
     assert judge_track(ok, names, tile_tracks(np.array([0] * 30 + [1] * 3), np.zeros(33), np.r_[np.zeros((30, 2)), np.full((3, 2), 5.0)],
                                               np.zeros((33, 2)), dc.tile_track_samples), 1.5, dc)[1] == {}
+
+
+def test_a_dem_patch_at_some_cells_equals_the_whole_patch_there(drive_dir, cfg):
+    """dem-align samples a range's DEM only where its labels take it (and the placement's
+    signals only on the ground): those values are the whole patch's, bit for bit."""
+    from gtgen.dem.place import dem_patch
+    from gtgen.geometry import yaw_transform
+    from gtgen.grids import grid_xy
+
+    index = TileIndex.build(drive_dir / "dem")
+    mosaic = DemMosaic(index, cfg.synth.crs)
+    t = index.tiles[0]
+    X, Y = grid_xy(cfg.grids.short.size, cfg.grids.short.resolution_m)
+    rng = np.random.default_rng(5)
+    for yaw in (0.0, 0.7, -2.2):
+        T = yaw_transform(0.5 * (t.left + t.right), 0.5 * (t.bottom + t.top), 3.0, yaw)
+        whole = dem_patch(mosaic, T, X, Y)
+        for share in (0.0, 0.3, 1.0):
+            at = rng.random(X.shape) < share
+            part = dem_patch(mosaic, T, X, Y, at=at)
+            assert part.dtype == whole.dtype and np.array_equal(part, whole[at], equal_nan=True)

@@ -73,7 +73,7 @@ class Packing:
         """Return ``values`` as the stored integers (NaN -> ``_FillValue``, the rest rounded
         to the nearest step); raise PackingError for a value out of range or infinite."""
         v = np.asarray(values, np.float64)
-        q = np.asarray(v - self.add_offset)  # in place from here: the temporaries of a grid were half its time
+        q = np.asarray(v - self.add_offset)  # in place from here: one temporary a grid, not five
         q /= self.scale_factor
         np.rint(q, out=q)
         info = np.iinfo(np.dtype(self.dtype))
